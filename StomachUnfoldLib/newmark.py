@@ -1,0 +1,251 @@
+"""Newmark-beta integration of the mass-spring-damper wall model, with the paper's termination rule.
+
+Equation of motion per vertex (LPS mm, unit-free time and mass):
+``M a + C v + f_spring(x) = f_unfold(x)`` where each spring pulls with ``k (|l| - L) l/|l|``
+(geometrically nonlinear), dampers act on relative velocities of spring ends (``C = c_m M + c L``), and
+the unfolding force is ``k_u (g - r)`` on the incision vertices (Eq. 9).
+
+Implicit solve: the spring force splits into a constant linear part and a rotation-dependent part,
+``f_spring(x) = L_k x - b(x)`` with ``b(x)`` the springs' rest-length vectors along their current
+directions. Newmark-beta (average acceleration by default, beta = 1/4, gamma = 1/2) then asks at every
+step for ``A x_{n+1} = rhs + b(x_{n+1})`` with ONE constant sparse matrix
+``A = M/(beta h^2) + gamma/(beta h) C + L_k + K_u``: it is factorised once and each step runs a few
+local/global fixed-point sweeps (update b, solve) that converge to the fully implicit nonlinear step.
+Iteration stops when ``|D(a-1) - D(a)| <= kappa`` (Eq. 11), at the iteration cap, or on divergence
+(non-finite or exploding positions), where the step is halved and the run restarted from the last good
+state, up to ``max_retries`` times.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse.linalg import splu
+
+from .errors import InputError, SimulationError
+from .unfolding_force import distance_metric
+
+__all__ = ["NewmarkParameters", "SimulationResult", "spring_laplacian", "spring_rotation_forces",
+           "NewmarkBeta", "simulate"]
+
+
+@dataclass
+class NewmarkParameters:
+    """Integration and model constants (unit mass per vertex on average, time in steps of ``time_step``)."""
+
+    beta: float = 0.25
+    gamma: float = 0.5
+    time_step: float = 1.0
+    spring_stiffness: float = 1.0
+    damping: float = 0.5           # dashpot coefficient per spring (relative velocity)
+    mass_damping: float = 0.2      # viscous damping per unit mass (absolute velocity)
+    unfolding_stiffness: float = 0.5
+    kappa: float = 0.5             # mm, termination threshold on |D(a-1) - D(a)|
+    max_iterations: int = 300
+    min_iterations: int = 5
+    inner_iterations: int = 2      # local/global sweeps per step
+    max_retries: int = 4           # step halvings on divergence
+
+    def validate(self) -> None:
+        """Raise InputError if a constant is out of its valid range."""
+        if not (0.0 < self.beta <= 0.5):
+            raise InputError(f"Newmark beta must be in (0, 0.5], got {self.beta}")
+        if not (0.0 < self.gamma <= 1.0):
+            raise InputError(f"Newmark gamma must be in (0, 1], got {self.gamma}")
+        for name in ("time_step", "spring_stiffness", "unfolding_stiffness", "kappa"):
+            if not (getattr(self, name) > 0 and np.isfinite(getattr(self, name))):
+                raise InputError(f"{name} must be a positive number, got {getattr(self, name)}")
+        for name in ("damping", "mass_damping"):
+            if not (getattr(self, name) >= 0 and np.isfinite(getattr(self, name))):
+                raise InputError(f"{name} must be zero or positive, got {getattr(self, name)}")
+        if self.max_iterations < 1 or self.inner_iterations < 1:
+            raise InputError("max_iterations and inner_iterations must be at least 1")
+
+
+@dataclass
+class SimulationResult:
+    """Final positions (LPS mm) and the history of the unfolding run."""
+
+    positions: np.ndarray
+    iterations: int
+    d_trace: list = field(default_factory=list)
+    converged: bool = False
+    reason: str = ""
+    seconds: float = 0.0
+    time_step: float = 1.0
+    retries: int = 0
+    warnings: list = field(default_factory=list)
+
+
+def spring_laplacian(n: int, springs: np.ndarray, weights) -> sparse.csr_matrix:
+    """Sparse n x n weighted graph Laplacian of the springs: sum_s w_s (e_i - e_j)(e_i - e_j)^T."""
+    springs = np.asarray(springs, np.int64)
+    w = np.broadcast_to(np.asarray(weights, float), (len(springs),))
+    i, j = springs[:, 0], springs[:, 1]
+    rows = np.concatenate([i, j, i, j])
+    cols = np.concatenate([i, j, j, i])
+    vals = np.concatenate([w, w, -w, -w])
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(n, n))
+
+
+def spring_rotation_forces(x: np.ndarray, springs: np.ndarray, kL: np.ndarray) -> np.ndarray:
+    """b(x): per vertex sum of ``k L l/|l|`` over its springs (+ on the first end, - on the second), (N,3)."""
+    i, j = springs[:, 0], springs[:, 1]
+    l = x[i] - x[j]
+    norm = np.linalg.norm(l, axis=1)
+    f = l * (kL / np.maximum(norm, 1e-9))[:, None]
+    n = len(x)
+    out = np.empty_like(x)
+    for a in range(3):
+        out[:, a] = np.bincount(i, f[:, a], minlength=n) - np.bincount(j, f[:, a], minlength=n)
+    return out
+
+
+class NewmarkBeta:
+    """Implicit Newmark-beta stepper for a spring network with linear target springs.
+
+    Per axis ``a`` the matrix is ``M/(beta h^2) + gamma/(beta h) C + L_k + diag(stiff[a])`` where
+    ``stiff[a]`` holds each vertex's target-spring stiffness along that axis; axes with the same
+    stiffness share one factorisation.
+    """
+
+    def __init__(self, springs: np.ndarray, rest_length: np.ndarray, mass: np.ndarray,
+                 params: NewmarkParameters, target_stiffness: np.ndarray | None = None,
+                 spring_stiffness: np.ndarray | None = None):
+        params.validate()
+        self.p = params
+        self.n = len(mass)
+        self.springs = np.asarray(springs, np.int64)
+        k = (np.full(len(self.springs), params.spring_stiffness) if spring_stiffness is None
+             else np.asarray(spring_stiffness, float))
+        self.kL = k * np.asarray(rest_length, float)
+        self.mass = np.asarray(mass, float)
+        self.Lk = spring_laplacian(self.n, self.springs, k)
+        self.M = sparse.diags(self.mass)
+        self.C = params.mass_damping * self.M + spring_laplacian(self.n, self.springs, params.damping)
+        self.stiff = np.zeros((3, self.n)) if target_stiffness is None else np.asarray(target_stiffness, float)
+        self.set_time_step(params.time_step)
+
+    def set_time_step(self, h: float) -> None:
+        """(Re)factorise the constant Newmark matrices for time step h."""
+        b, g = self.p.beta, self.p.gamma
+        self.h = float(h)
+        base = self.M / (b * h * h) + (g / (b * h)) * self.C + self.Lk
+        self.lu = []
+        for a in range(3):
+            for prev in range(a):
+                if np.array_equal(self.stiff[prev], self.stiff[a]):
+                    self.lu.append(self.lu[prev])
+                    break
+            else:
+                self.lu.append(splu(sparse.csc_matrix(base + sparse.diags(self.stiff[a]))))
+
+    def step(self, x, v, a, f_target):
+        """Advance one Newmark-beta step from (x, v, a) under target forces ``stiff * target``; returns (x1, v1, a1)."""
+        b, g, h = self.p.beta, self.p.gamma, self.h
+        x_pred = x + h * v + h * h * (0.5 - b) * a
+        v_pred = v + h * (1.0 - g) * a
+        rhs = (self.M @ x_pred) / (b * h * h) + self.C @ (g / (b * h) * x_pred - v_pred) + f_target
+        x1 = x_pred
+        for _ in range(self.p.inner_iterations):
+            r = rhs + spring_rotation_forces(x1, self.springs, self.kL)
+            x1 = np.stack([self.lu[ax].solve(r[:, ax]) for ax in range(3)], axis=1)
+        a1 = (x1 - x_pred) / (b * h * h)
+        v1 = v_pred + g * h * a1
+        return x1, v1, a1
+
+
+def simulate(rest: np.ndarray, springs, rest_length, mass, pulled_ids, targets,
+             params: NewmarkParameters | None = None, progress=None, frame=None, origin=None,
+             heights=None, flatten_stiffness: float = 0.0, ramp_iterations: int = 20,
+             pulled_side=None) -> SimulationResult:
+    """Run the unfolding: Newmark-beta steps until |D(a-1) - D(a)| <= kappa, the cap, or unrecoverable divergence.
+
+    Positions and targets are LPS mm. The pulled vertices feel ``unfolding_stiffness * (g - r)``.
+    With ``frame`` (3x3, columns v1, v2, n), ``origin`` (a point on the plane) and ``heights`` (N,
+    mm along n, relative to the plane), every vertex is also pulled along n toward its height with
+    ``flatten_stiffness``, the height target moving from the rest height to ``heights`` over the first
+    ``ramp_iterations`` iterations (this keeps the matrix constant: the pull acts on one axis of the frame).
+    With ``pulled_side`` (+1/-1 per pulled vertex, the side of the base line it goes to) the destinations
+    are guided during the ramp: each moves from the vertex's rest position to g along a half-turn about
+    an axis parallel to v1 that passes over the plane (+n first), the way a cut edge rotates when a tube is
+    unrolled with its inner surface toward +n; afterwards the destinations are the paper's g.
+    ``progress`` (a Progress or callable(fraction)) is called every step. If the cap is reached the
+    last state is returned with a warning.
+    """
+    params = params or NewmarkParameters()
+    t0 = time.perf_counter()
+    rest = np.asarray(rest, float)
+    pulled_ids = np.asarray(pulled_ids, np.int64)
+    targets = np.asarray(targets, float)
+    F = np.eye(3) if frame is None else np.asarray(frame, float)
+    o = np.zeros(3) if origin is None else np.asarray(origin, float)
+    Y0 = (rest - o) @ F
+    G = (targets - o) @ F
+    n = len(rest)
+    stiff = np.zeros((3, n))
+    stiff[:, pulled_ids] += params.unfolding_stiffness
+    flatten = heights is not None and flatten_stiffness > 0
+    guided = pulled_side is not None and ramp_iterations > 0 and len(pulled_ids) > 0
+    if guided:
+        P0 = Y0[pulled_ids]
+        mid = 0.5 * (P0 + G)
+        d0 = P0 - mid
+        sense = -np.asarray(pulled_side, float)
+    if flatten:
+        stiff[2] += flatten_stiffness
+        h_final = np.asarray(heights, float)
+    stepper = NewmarkBeta(springs, rest_length, mass, params, stiff)
+    scale = float(np.ptp(Y0, axis=0).max()) + (float(np.abs(G).max()) if len(G) else 0.0)
+    retries = 0
+    h = params.time_step
+    warnings: list[str] = []
+    while True:
+        y = Y0.copy()
+        v = np.zeros_like(y)
+        a = np.zeros_like(y)
+        trace = [distance_metric(y[pulled_ids], G)]
+        converged, reason, diverged = False, "iteration cap", False
+        it = 0
+        for it in range(1, params.max_iterations + 1):
+            s = min(1.0, it / max(ramp_iterations, 1))
+            f = np.zeros_like(y)
+            if guided and s < 1.0:
+                th = sense * np.pi * s
+                c, sn = np.cos(th), np.sin(th)
+                g_now = np.stack([P0[:, 0] + s * (G[:, 0] - P0[:, 0]),
+                                  mid[:, 1] + d0[:, 1] * c - d0[:, 2] * sn,
+                                  mid[:, 2] + d0[:, 1] * sn + d0[:, 2] * c], axis=1)
+            else:
+                g_now = G
+            f[pulled_ids] += params.unfolding_stiffness * g_now
+            if flatten:
+                f[:, 2] += flatten_stiffness * (Y0[:, 2] + s * (h_final - Y0[:, 2]))
+            y, v, a = stepper.step(y, v, a, f)
+            if not np.all(np.isfinite(y)) or np.abs(y - Y0).max() > 10.0 * scale + 1e3:
+                diverged = True
+                break
+            trace.append(distance_metric(y[pulled_ids], G))
+            if progress is not None:
+                progress(min(1.0, it / params.max_iterations))
+            ramp_done = not (flatten or guided) or it >= ramp_iterations
+            if it >= params.min_iterations and ramp_done and abs(trace[-2] - trace[-1]) <= params.kappa:
+                converged, reason = True, f"|D(a-1) - D(a)| <= kappa = {params.kappa} mm"
+                break
+        if not diverged:
+            break
+        retries += 1
+        if retries > params.max_retries:
+            raise SimulationError(f"the unfolding simulation diverged at iteration {it} even with time step "
+                                  f"{h:g}; lower --time-step or the stiffness, or raise the damping")
+        h *= 0.5
+        warnings.append(f"simulation diverged at iteration {it}; retried with time step {h:g}")
+        stepper.set_time_step(h)
+    if not converged:
+        warnings.append(f"no convergence within {params.max_iterations} iterations (last |dD| = "
+                        f"{abs(trace[-2] - trace[-1]):.3g} mm > kappa); returning the last state")
+    return SimulationResult(positions=y @ F.T + o, iterations=it, d_trace=[float(d) for d in trace],
+                            converged=converged, reason=reason, seconds=time.perf_counter() - t0,
+                            time_step=h, retries=retries, warnings=warnings)

@@ -1,0 +1,224 @@
+"""Hexahedral mass-spring-damper model of the stomach wall (Oda et al., "Definition of Stomach Wall Model").
+
+The wall region is covered by hexahedra on a regular grid of ``d x d x d_hat`` voxels aligned with the CT
+axes (``d_hat = d * pixel spacing / slice spacing`` along the slice axis k). A cell is part of the model
+when it holds a wall voxel. Cells crossed by the incision surface, and cells beyond the cardia and pylorus
+ends of the centreline (the openings of the stomach), are removed. Mass points sit on the shared cell
+vertices; springs and dampers sit on the cell edges, face diagonals and body diagonals.
+
+Vertex sets, as in the paper: ``S_vi`` (inner surface: faces touching the lumen or the incision),
+``S_vo`` (outer surface: faces touching neither lumen nor model, or the incision) and ``S_vb``
+(vertices on the incision faces, which are in both).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .errors import AnatomyError, InputError
+from .geometry import Volume
+
+__all__ = ["WallModel", "grid_steps", "build_wall_model", "HEX_OFFSETS"]
+
+#: Grid offsets (i, j, k) of the 8 vertices of a cell, in VTK_HEXAHEDRON order.
+HEX_OFFSETS = np.array([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0),
+                        (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)], dtype=np.int64)
+
+# Local vertex pairs of the springs of one cell: 12 edges, 12 face diagonals, 4 body diagonals.
+_EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
+_FACE_DIAGONALS = [(0, 2), (1, 3), (4, 6), (5, 7), (0, 5), (1, 4), (3, 6), (2, 7), (0, 7), (3, 4), (1, 6), (2, 5)]
+_BODY_DIAGONALS = [(0, 6), (1, 7), (2, 4), (3, 5)]
+
+# The six faces of a cell: (neighbour offset, local vertex ids of that face).
+_FACES = [((-1, 0, 0), (0, 3, 7, 4)), ((1, 0, 0), (1, 2, 6, 5)),
+          ((0, -1, 0), (0, 1, 5, 4)), ((0, 1, 0), (3, 2, 6, 7)),
+          ((0, 0, -1), (0, 1, 2, 3)), ((0, 0, 1), (4, 5, 6, 7))]
+
+
+@dataclass
+class WallModel:
+    """The hexahedral wall model: rest vertices (LPS mm), cells, springs and the vertex sets of the paper."""
+
+    vertices: np.ndarray        # (N,3) rest positions, LPS mm
+    hexes: np.ndarray           # (M,8) vertex ids, VTK_HEXAHEDRON order
+    cells_ijk: np.ndarray       # (M,3) integer cell coordinates on the model grid (i, j, k order)
+    springs: np.ndarray         # (S,2) vertex ids
+    spring_kind: np.ndarray     # (S,) 0 edge, 1 face diagonal, 2 body diagonal
+    rest_length: np.ndarray     # (S,) mm
+    mass: np.ndarray            # (N,) lumped mass (mean 1)
+    inner: np.ndarray           # (N,) bool, S_vi
+    outer: np.ndarray           # (N,) bool, S_vo
+    boundary: np.ndarray        # (N,) bool, S_vb (incision faces)
+    steps: tuple                # (d, d, d_hat) voxels per cell along i, j, k
+    grid_origin_ijk: np.ndarray # continuous CT index of grid vertex (0,0,0)
+    removed_incision: int = 0   # cells removed by the incision
+    removed_openings: int = 0   # cells removed beyond the cardia and pylorus
+    removed_fragments: int = 0  # cells dropped as disconnected fragments
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of mass points."""
+        return len(self.vertices)
+
+    @property
+    def n_hexes(self) -> int:
+        """Number of hexahedra."""
+        return len(self.hexes)
+
+    @property
+    def n_springs(self) -> int:
+        """Number of springs (each with a damper)."""
+        return len(self.springs)
+
+    def summary(self) -> dict:
+        """Model sizes for the report (counts, cell size in voxels)."""
+        return {"vertices": int(self.n_vertices), "hexahedra": int(self.n_hexes),
+                "springs": int(self.n_springs), "cell_voxels": [int(s) for s in self.steps],
+                "inner_vertices": int(self.inner.sum()), "outer_vertices": int(self.outer.sum()),
+                "incision_vertices": int(self.boundary.sum()),
+                "removed_incision_cells": int(self.removed_incision),
+                "removed_opening_cells": int(self.removed_openings),
+                "removed_fragment_cells": int(self.removed_fragments)}
+
+
+def grid_steps(spacing, d: int = 8) -> tuple[int, int, int]:
+    """Cell size in voxels along (i, j, k): ``(d, d, d_hat)`` with ``d_hat = d * pixel / slice spacing`` (>= 1)."""
+    spacing = np.asarray(spacing, float)
+    if d < 1:
+        raise InputError(f"grid size d must be at least 1 voxel, got {d}")
+    pixel = float(np.sqrt(spacing[0] * spacing[1]))
+    d_hat = max(1, int(round(d * pixel / spacing[2])))
+    return (int(d), int(d), d_hat)
+
+
+def _block_any(mask: np.ndarray, steps, shape_cells) -> np.ndarray:
+    """Per cell (k, j, i order) whether any voxel of ``mask[k, j, i]`` lies in it; cells tile from index 0."""
+    sk, sj, si = steps[2], steps[1], steps[0]
+    nk, nj, ni = shape_cells
+    pad = np.zeros((nk * sk, nj * sj, ni * si), dtype=bool)
+    pad[:mask.shape[0], :mask.shape[1], :mask.shape[2]] = mask
+    return pad.reshape(nk, sk, nj, sj, ni, si).any(axis=(1, 3, 5))
+
+
+def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int = 8,
+                     cut_points_lps: np.ndarray | None = None,
+                     openings: list[tuple[np.ndarray, np.ndarray]] | None = None) -> WallModel:
+    """Build the hexahedral wall model on ``volume``'s grid (LPS mm) from wall and lumen masks.
+
+    Parameters
+    ----------
+    volume : Volume
+        Geometry of the (cropped) CT; masks are on its grid.
+    wall, lumen : ndarray of bool, shape ``volume.array.shape``
+        Stomach wall region and lumen (air region or mask).
+    d : int
+        In-plane cell size in voxels (the paper's d); the slice-axis size follows from the spacing.
+    cut_points_lps : (P,3) array, optional
+        Points sampled densely (spacing below half a cell) on the incision surface; cells holding one
+        are removed (the hexahedra on the incision line).
+    openings : list of (point_lps, outward_normal)
+        Half-spaces beyond the cardia and pylorus: cells whose centre lies beyond a plane are removed.
+    """
+    steps = grid_steps(volume.spacing, d)
+    shape_vox = wall.shape  # (k, j, i)
+    ncells = tuple(int(np.ceil(shape_vox[a] / steps[2 - a])) for a in range(3))  # (nk, nj, ni)
+    occupied = _block_any(wall, steps, ncells)
+    lumen_cells = _block_any(lumen, steps, ncells)
+    if not occupied.any():
+        raise AnatomyError("the stomach wall region is empty: check the air threshold or pass a stomach mask")
+
+    grid_origin = -0.5 * np.ones(3)  # continuous index of grid vertex (0,0,0): voxel boundary
+    step_arr = np.array(steps, float)
+
+    def cell_centres_lps(idx_kji):
+        ijk = grid_origin + (idx_kji[:, ::-1] + 0.5) * step_arr
+        return volume.index_to_lps(ijk)
+
+    # --- cells on the incision surface
+    incision_cells = np.zeros_like(occupied)
+    if cut_points_lps is not None and len(cut_points_lps):
+        ijk = volume.lps_to_index(np.asarray(cut_points_lps, float))
+        cidx = np.floor((ijk - grid_origin) / step_arr).astype(np.int64)  # (i, j, k)
+        ok = np.all((cidx >= 0) & (cidx < np.array(ncells[::-1])), axis=1)
+        cidx = cidx[ok]
+        incision_cells[cidx[:, 2], cidx[:, 1], cidx[:, 0]] = True
+    removed_incision = int((occupied & incision_cells).sum())
+    keep = occupied & ~incision_cells
+
+    # --- openings at the cardia and pylorus ends
+    removed_open = 0
+    if openings:
+        idx = np.argwhere(keep)
+        centres = cell_centres_lps(idx)
+        beyond = np.zeros(len(idx), bool)
+        for point, normal in openings:
+            normal = np.asarray(normal, float) / np.linalg.norm(normal)
+            beyond |= (centres - np.asarray(point, float)) @ normal > 0
+        removed_open = int(beyond.sum())
+        keep[tuple(idx[beyond].T)] = False
+
+    # --- keep the largest face-connected piece
+    labels, n = ndimage.label(keep)
+    if n == 0:
+        raise AnatomyError("no wall cells remain after the incision: the grid size d is too large for this "
+                           "stomach; use a smaller --grid-size")
+    sizes = np.bincount(labels.ravel())[1:]
+    largest = 1 + int(np.argmax(sizes))
+    removed_frag = int(sizes.sum() - sizes.max())
+    keep = labels == largest
+
+    cells = np.argwhere(keep)  # (M,3) in (k, j, i)
+    cells_ijk = cells[:, ::-1].astype(np.int64)
+    # --- vertices: unique corners of kept cells
+    corners = cells_ijk[:, None, :] + HEX_OFFSETS[None, :, :]  # (M,8,3) in (i,j,k)
+    nv_shape = np.array(ncells[::-1]) + 1  # vertex grid size (i, j, k)
+    flat = np.ravel_multi_index((corners[..., 0].ravel(), corners[..., 1].ravel(), corners[..., 2].ravel()),
+                                tuple(nv_shape))
+    uniq, inverse = np.unique(flat, return_inverse=True)
+    hexes = inverse.reshape(-1, 8).astype(np.int64)
+    vijk = np.stack(np.unravel_index(uniq, tuple(nv_shape)), axis=1).astype(float)
+    vertices = volume.index_to_lps(grid_origin + vijk * step_arr)
+
+    # --- springs
+    pairs = np.array(_EDGES + _FACE_DIAGONALS + _BODY_DIAGONALS)
+    kinds = np.array([0] * len(_EDGES) + [1] * len(_FACE_DIAGONALS) + [2] * len(_BODY_DIAGONALS))
+    s = hexes[:, pairs]  # (M, 28, 2)
+    s = np.sort(s.reshape(-1, 2), axis=1)
+    kind_all = np.tile(kinds, len(hexes))
+    key = s[:, 0] * len(vertices) + s[:, 1]
+    _, first = np.unique(key, return_index=True)
+    springs = s[first]
+    spring_kind = kind_all[first]
+    rest_length = np.linalg.norm(vertices[springs[:, 0]] - vertices[springs[:, 1]], axis=1)
+
+    # --- lumped masses (equal share of each cell's volume), normalised to mean 1
+    mass = np.bincount(hexes.ravel(), minlength=len(vertices)).astype(float)
+    mass /= mass.mean()
+
+    # --- surface vertex sets from the faces of kept cells
+    inner = np.zeros(len(vertices), bool)
+    outer = np.zeros(len(vertices), bool)
+    boundary = np.zeros(len(vertices), bool)
+    shape_c = np.array(ncells)
+    for off, local in _FACES:
+        nb = cells + np.array(off[::-1])  # neighbour in (k, j, i)
+        inside = np.all((nb >= 0) & (nb < shape_c), axis=1)
+        nbc = np.clip(nb, 0, shape_c - 1)
+        nb_keep = inside & keep[nbc[:, 0], nbc[:, 1], nbc[:, 2]]
+        nb_cut = inside & incision_cells[nbc[:, 0], nbc[:, 1], nbc[:, 2]] & ~nb_keep
+        nb_lumen = inside & lumen_cells[nbc[:, 0], nbc[:, 1], nbc[:, 2]] & ~nb_keep & ~nb_cut
+        free = ~nb_keep
+        vids = hexes[:, list(local)]
+        inner[vids[nb_lumen].ravel()] = True
+        boundary[vids[nb_cut].ravel()] = True
+        outer[vids[free & ~nb_lumen & ~nb_cut].ravel()] = True
+    inner |= boundary
+    outer |= boundary
+
+    return WallModel(vertices=vertices, hexes=hexes, cells_ijk=cells_ijk, springs=springs,
+                     spring_kind=spring_kind, rest_length=rest_length, mass=mass, inner=inner, outer=outer,
+                     boundary=boundary, steps=steps, grid_origin_ijk=grid_origin,
+                     removed_incision=removed_incision, removed_openings=removed_open,
+                     removed_fragments=removed_frag)
