@@ -141,7 +141,8 @@ def incision_from_curve(curve_lps, centerline) -> Incision:
     if k[0] > k[-1]:
         u, k = u[::-1], k[::-1]
     c = np.asarray(centerline.points_lps)[k]
-    dirs = _normalise(u - c)
+    t = _normalise(np.asarray(centerline.tangents, float)[k])
+    dirs = _normalise(_perpendicular(u - c, t))
     return Incision(points_lps=u, directions=dirs, centerline_index=k, side="user")
 
 
