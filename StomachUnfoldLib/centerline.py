@@ -1,8 +1,9 @@
-"""Centreline of the stomach lumen from the cardia to the pylorus, with the radius along it (mm, LPS).
+"""Centreline of the stomach lumen from the cardia to the pylorus, with the radius along it (LPS mm).
 
-A minimal-cost path through the lumen whose cost falls steeply with the distance to the wall keeps the
-curve central. It is found on a grid coarsened to about 2 mm voxels (fast even for a full CT), smoothed,
-resampled every ``step_mm`` and given the full-resolution distance to the wall as its radius.
+A minimal-cost path through the lumen, whose cost falls steeply with the distance to the wall, keeps the
+curve central. It is found on the lumen's bounding box coarsened to about 2 mm voxels (fast even for a
+full CT), then smoothed (ends kept), resampled every ``step_mm`` and given the full-resolution distance
+to the lumen boundary as its radius.
 """
 from __future__ import annotations
 
@@ -13,14 +14,19 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from .errors import AnatomyError, PointError
-from .geometry import Volume, lps_to_ras
+from .geometry import Volume
 
 __all__ = ["Centerline", "compute_centerline"]
 
 
 @dataclass
 class Centerline:
-    """Centreline points (LPS mm) from cardia to pylorus, radius (mm), unit tangents and arc length (mm)."""
+    """Centreline from cardia to pylorus: points (K,3, LPS mm), radius (K, mm), unit tangents (K,3), arc length (K, mm).
+
+    ``radius_mm`` is the distance (mm) from each point to the lumen boundary, measured as the Euclidean
+    distance transform does: to the nearest non-lumen voxel centre (up to half a voxel more than the
+    distance to the voxel faces).
+    """
 
     points_lps: np.ndarray
     radius_mm: np.ndarray
@@ -29,75 +35,243 @@ class Centerline:
 
     @property
     def length_mm(self) -> float:
-        """Length of the centreline in mm."""
+        """Length of the centreline (mm)."""
         return float(self.arclength_mm[-1]) if len(self.arclength_mm) else 0.0
 
     def nearest(self, points_lps) -> np.ndarray:
-        """Index of the nearest centreline point for each LPS point (mm)."""
-        return cKDTree(self.points_lps).query(np.asarray(points_lps, float))[1]
+        """Index of the nearest centreline point for each LPS point (mm); int array of the input's leading shape."""
+        p = np.asarray(points_lps, float)
+        return cKDTree(self.points_lps).query(p.reshape(-1, 3))[1].reshape(p.shape[:-1])
 
 
+# ---------------------------------------------------------------------------------------------- helpers
 def _resample(points: np.ndarray, step: float) -> np.ndarray:
+    """Points (N,3) resampled at equal arc-length steps of about ``step`` (mm); the ends are kept."""
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
-    n = max(2, int(np.ceil(s[-1] / step)) + 1)
+    if s[-1] <= 0:
+        return points[[0, -1]].copy()
+    n = max(2, int(np.ceil(s[-1] / step - 1e-9)) + 1)
     ss = np.linspace(0.0, s[-1], n)
     return np.stack([np.interp(ss, s, points[:, a]) for a in range(3)], axis=1)
 
 
-def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lps, step_mm: float = 2.0,
-                       max_snap_mm: float = 20.0, coarse_mm: float = 2.0, progress=None) -> Centerline:
-    """Central path through ``lumen`` (bool on volume's grid) from the cardia to the pylorus (LPS mm); see module doc."""
-    from skimage.graph import MCP_Geometric
+def _smooth(points: np.ndarray, sigma_pts: float) -> np.ndarray:
+    """Gaussian smoothing of a polyline along its points (sigma in points); the ends stay fixed.
 
-    from .preprocessing import snap_to_region
+    The curve is extended past each end by its point reflection about the end point, which keeps the
+    ends and the direction there.
+    """
+    n = len(points)
+    if n < 4 or sigma_pts <= 0:
+        return points.copy()
+    pad = min(n - 1, int(np.ceil(3 * sigma_pts)))
+    head = 2 * points[0] - points[pad:0:-1]
+    tail = 2 * points[-1] - points[-2:-2 - pad:-1]
+    ext = np.concatenate([head, points, tail])
+    sm = ndimage.gaussian_filter1d(ext, sigma_pts, axis=0, mode="nearest")[pad:pad + n]
+    sm[0], sm[-1] = points[0], points[-1]
+    return sm
 
-    f = np.maximum(1, np.floor(coarse_mm / volume.spacing).astype(int))  # (i, j, k)
-    # a coarse voxel is lumen when most of it is lumen (so the path keeps off the wall)
-    sub = lumen[::f[2], ::f[1], ::f[0]]
-    csp = volume.spacing * f
-    coarse = Volume(sub.astype(np.uint8), csp, volume.origin, volume.direction)
-    if progress is not None:
-        progress(0.1)
-    dt = ndimage.distance_transform_edt(sub, sampling=csp[::-1])
-    if progress is not None:
-        progress(0.4)
-    ends = []
-    for name, p in (("cardia", cardia_lps), ("pylorus", pylorus_lps)):
-        s = snap_to_region(sub, coarse, p, max_snap_mm, name)
-        if s is None:
-            raise PointError(f"the {name} point (RAS {np.round(lps_to_ras(np.asarray(p, float)), 1).tolist()} mm) "
-                             f"is more than {max_snap_mm:g} mm from the stomach lumen; place it in the lumen")
-        ends.append(np.rint(coarse.lps_to_index(s[None])[0]).astype(int)[::-1])  # (k, j, i)
-    rmax = float(dt.max())
-    cost = np.where(sub, 1.0 / (dt / max(rmax, 1e-6) + 0.05) ** 2, np.inf)
-    mcp = MCP_Geometric(cost, sampling=tuple(csp[::-1]))
-    costs, _ = mcp.find_costs([tuple(ends[0])], [tuple(ends[1])])
-    if not np.isfinite(costs[tuple(ends[1])]):
-        raise AnatomyError("the cardia and pylorus are not connected through the stomach lumen (separate air "
-                           "pockets?); pass a stomach label with --mask or place the points in one lumen")
-    path = np.array(mcp.traceback(tuple(ends[1])))[::-1]  # (k, j, i), cardia first
-    if progress is not None:
-        progress(0.7)
-    pts = coarse.index_to_lps(path[:, ::-1].astype(float))
-    pts = _resample(pts, min(step_mm, float(csp.min())))
-    # smooth the staircase path, keeping the ends
-    if len(pts) > 5:
-        sigma = max(1.0, 4.0 / min(step_mm, float(csp.min())))
-        sm = ndimage.gaussian_filter1d(pts, sigma, axis=0, mode="nearest")
-        w = np.minimum(np.arange(len(pts)), np.arange(len(pts))[::-1]) / (2.0 * sigma)
-        w = np.clip(w, 0, 1)[:, None]
-        pts = sm * w + pts * (1 - w)
-    pts = _resample(pts, step_mm)
-    # radius: full-resolution distance to the wall, sampled on a fine crop of the lumen
-    fine_dt = ndimage.distance_transform_edt(lumen, sampling=volume.spacing[::-1]).astype(np.float32)
-    radius = volume.with_array(fine_dt).sample(pts, order=1, cval=0.0).astype(float)
-    if progress is not None:
-        progress(1.0)
+
+def _block_reduce(mask: np.ndarray, f_kji, majority: bool) -> np.ndarray:
+    """Coarsen a bool mask by integer factors (k, j, i): a coarse voxel is set if most (or any) fine voxels are."""
+    f = np.asarray(f_kji, int)
+    shape = np.array(mask.shape)
+    n = -(-shape // f)
+    padded = np.zeros(n * f, bool)
+    padded[:shape[0], :shape[1], :shape[2]] = mask
+    blocks = padded.reshape(n[0], f[0], n[1], f[1], n[2], f[2])
+    if not majority:
+        return blocks.any(axis=(1, 3, 5))
+    count = blocks.sum(axis=(1, 3, 5), dtype=np.int32)
+    return 2 * count >= int(np.prod(f))
+
+
+def _boundary_points(lumen: np.ndarray, volume: Volume) -> np.ndarray:
+    """LPS centres (mm) of the non-lumen voxels 6-adjacent to the lumen; the grid edge counts as non-lumen.
+
+    The nearest non-lumen voxel centre to any point inside the lumen is one of these, so a KD-tree on them
+    gives the lumen's Euclidean distance transform at any continuous point.
+    """
+    pad = np.pad(lumen, 1, constant_values=False)
+    near = np.zeros_like(pad)
+    near[1:] |= pad[:-1]
+    near[:-1] |= pad[1:]
+    near[:, 1:] |= pad[:, :-1]
+    near[:, :-1] |= pad[:, 1:]
+    near[:, :, 1:] |= pad[:, :, :-1]
+    near[:, :, :-1] |= pad[:, :, 1:]
+    kk, jj, ii = np.nonzero(near & ~pad)
+    return volume.index_to_lps(np.stack([ii - 1, jj - 1, kk - 1], axis=1).astype(float))
+
+
+def _normals(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (K,3) perpendicular to unit tangents t (K,3) and to each other."""
+    ref = np.where(np.abs(t[:, [0]]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    n1 = np.cross(t, ref)
+    n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
+    return n1, np.cross(t, n1)
+
+
+def _centre_points(pts: np.ndarray, tree: cKDTree, window_mm: float, step_mm: float, tol_mm: float) -> np.ndarray:
+    """Move each inner point (LPS mm) in its normal plane to the middle of the lumen, by at most window_mm.
+
+    Candidate offsets on a square grid in the normal plane are scored by their distance to the lumen
+    boundary (KD-tree of boundary voxel centres); the point goes to the centroid of the candidates within
+    ``tol_mm`` of the best score. This removes the offset of up to half a coarse voxel left by the
+    coarse path, without letting the curve wander (the window is small).
+    """
+    if len(pts) < 3:
+        return pts
     t = np.gradient(pts, axis=0)
     t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    n1, n2 = _normals(t)
+    m = int(min(12, np.ceil(window_mm / step_mm)))
+    g = np.arange(-m, m + 1) * (window_mm / max(m, 1))
+    a, b = [x.ravel() for x in np.meshgrid(g, g, indexing="ij")]
+    inside = a ** 2 + b ** 2 <= window_mm ** 2 + 1e-9
+    a, b = a[inside], b[inside]
+    cand = pts[:, None, :] + a[None, :, None] * n1[:, None, :] + b[None, :, None] * n2[:, None, :]
+    d = tree.query(cand.reshape(-1, 3))[0].reshape(len(pts), len(a))
+    top = d >= d.max(axis=1, keepdims=True) - tol_mm
+    w = top / top.sum(axis=1, keepdims=True)
+    shift = (w[:, :, None] * (cand - pts[:, None, :])).sum(axis=1)
+    shift = ndimage.gaussian_filter1d(shift, 1.0, axis=0, mode="nearest")
+    shift[0] = shift[-1] = 0.0
+    return pts + shift
+
+
+def _snap_any(mask: np.ndarray, volume: Volume, p: np.ndarray, max_mm: float):
+    """Nearest True voxel centre (LPS mm) of mask to p within max_mm, also for p off the grid; None if none."""
+    from .preprocessing import _nearest_true
+
+    return _nearest_true(mask, volume, p, max_mm)
+
+
+# ---------------------------------------------------------------------------------------------- main
+def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lps, step_mm: float = 2.0,
+                       max_snap_mm: float = 20.0, coarse_mm: float = 2.0, progress=None) -> Centerline:
+    """Central curve (LPS mm) through ``lumen`` from the cardia to the pylorus, with the radius (mm) along it.
+
+    Parameters
+    ----------
+    lumen : (K, J, I) bool array
+        Stomach lumen on ``volume``'s grid (may be a crop of the CT).
+    volume : Volume
+        Gives the geometry of ``lumen`` (its array is not used).
+    cardia_lps, pylorus_lps : (3,) array-like
+        End points, LPS mm; each is snapped to the nearest lumen voxel within ``max_snap_mm``.
+    step_mm : float
+        Spacing (mm) of the output points.
+    max_snap_mm : float
+        How far (mm) a point may lie from the lumen.
+    coarse_mm : float
+        Voxel size (mm) of the grid the minimal-cost path is searched on.
+    progress : Progress or callable(fraction), optional
+
+    Returns
+    -------
+    Centerline
+        Starts at the snapped cardia and ends at the snapped pylorus.
+
+    Raises
+    ------
+    PointError
+        If a point lies more than ``max_snap_mm`` from the lumen.
+    AnatomyError
+        If the lumen is empty, the two points are not connected inside it, or they are too close.
+
+    Notes
+    -----
+    The path minimises the integral of ``1 / (dt / dt_max + 0.05) ** 2`` (``dt`` the coarse distance to
+    the wall in mm), so it runs along the middle of the lumen; it is then smoothed with a Gaussian of
+    about 2 coarse voxels along the curve and each point is re-centred in its normal plane on the
+    full-resolution lumen (by at most 0.75 coarse voxel). The radius is the full-resolution Euclidean
+    distance to the nearest non-lumen voxel centre, evaluated exactly at each point (KD-tree of the
+    lumen's outer boundary voxels, so no distance transform of the whole lumen is needed).
+    """
+    from skimage.graph import MCP_Geometric
+
+    from .preprocessing import _ras_text, bounding_box
+
+    if not step_mm > 0:
+        raise AnatomyError(f"the centreline step must be positive, got {step_mm} mm")
+    lumen = np.asarray(lumen, bool)
+    if lumen.shape != volume.array.shape:
+        raise AnatomyError(f"the lumen has shape {lumen.shape} but the volume {volume.array.shape}")
+    ends_lps = []
+    for name, p in (("cardia", cardia_lps), ("pylorus", pylorus_lps)):
+        p = np.asarray(p, float).reshape(3)
+        s = _snap_any(lumen, volume, p, max_snap_mm) if lumen.any() else None
+        if s is None:
+            if not lumen.any():
+                raise AnatomyError("the stomach lumen is empty; check the points, the threshold or the mask")
+            raise PointError(f"the {name} point (RAS {_ras_text(p)} mm) is more than {max_snap_mm:g} mm from the "
+                             "stomach lumen; place it in the lumen or on the wall next to it")
+        ends_lps.append(s)
+    if np.linalg.norm(ends_lps[0] - ends_lps[1]) < 2.0 * step_mm:
+        raise AnatomyError("the cardia and pylorus points snap to almost the same place in the lumen "
+                           f"({np.linalg.norm(ends_lps[0] - ends_lps[1]):.1f} mm apart); place them at the two "
+                           "ends of the stomach")
+    if progress is not None:
+        progress(0.05)
+
+    # crop to the lumen, then coarsen to about coarse_mm voxels
+    lo, hi = bounding_box(lumen, (1, 1, 1))
+    sub = lumen[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+    crop_origin = volume.index_to_lps(lo.astype(float)[None])[0]
+    f = np.maximum(1, np.floor(coarse_mm / volume.spacing + 0.5).astype(int))  # (i, j, k)
+    csp = volume.spacing * f
+    c_origin = crop_origin + volume.direction @ (volume.spacing * (f - 1) / 2.0)
+    cvol = Volume(np.zeros((1, 1, 1), np.uint8), csp, c_origin, volume.direction)
+    path = None
+    for majority in (True, False):
+        coarse = _block_reduce(sub, f[::-1], majority)
+        cvol = Volume(np.zeros(coarse.shape, np.uint8), csp, c_origin, volume.direction)
+        cends = [_snap_any(coarse, cvol, e, max_snap_mm + 2.0 * float(csp.max())) for e in ends_lps]
+        if any(c is None for c in cends):
+            continue
+        cends = [tuple(np.rint(cvol.lps_to_index(c[None])[0]).astype(int)[::-1]) for c in cends]  # (k, j, i)
+        dt = ndimage.distance_transform_edt(coarse, sampling=csp[::-1])
+        if progress is not None:
+            progress(0.2)
+        cost = np.where(coarse, 1.0 / (dt / max(float(dt.max()), 1e-6) + 0.05) ** 2, np.inf)
+        mcp = MCP_Geometric(cost, sampling=tuple(csp[::-1]))
+        costs, _ = mcp.find_costs([cends[0]], [cends[1]])
+        if np.isfinite(costs[cends[1]]):
+            path = np.array(mcp.traceback(cends[1]), float)  # (k, j, i), cardia first
+            break
+    if path is None:
+        raise AnatomyError("the cardia and pylorus points are not connected through the stomach lumen (separate "
+                           "air pockets?); place both points in one lumen, or pass a stomach label with --mask")
+    if progress is not None:
+        progress(0.6)
+
+    pts = cvol.index_to_lps(path[:, ::-1])
+    pts = np.concatenate([ends_lps[0][None], pts[1:-1], ends_lps[1][None]]) if len(pts) > 2 \
+        else np.stack(ends_lps)
+    fine_step = min(step_mm, float(csp.min())) / 2.0
+    pts = _resample(pts, fine_step)
+    pts = _smooth(pts, sigma_pts=2.0 * float(csp.max()) / fine_step)
+    pts = _resample(pts, step_mm)
     if len(pts) < 3:
-        raise AnatomyError("the centreline is shorter than 3 points: the cardia and pylorus are too close")
+        raise AnatomyError(f"the centreline is only {len(pts)} points long: the cardia and pylorus are too close "
+                           "together; place them at the two ends of the stomach")
+    if progress is not None:
+        progress(0.8)
+
+    # centre the points on the full-resolution lumen, then measure the radius there
+    tree = cKDTree(_boundary_points(sub, Volume(np.zeros((1, 1, 1)), volume.spacing, crop_origin,
+                                                volume.direction)))
+    fine = float(volume.spacing.min())
+    if np.any(f > 1):
+        pts = _centre_points(pts, tree, window_mm=0.75 * float(csp.max()), step_mm=0.5 * fine, tol_mm=0.5 * fine)
+        pts = _resample(pts, step_mm)
+    radius = tree.query(pts)[0]
+    t = np.gradient(pts, axis=0)
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    if progress is not None:
+        progress(1.0)
     return Centerline(points_lps=pts, radius_mm=radius, tangents=t, arclength_mm=arc)

@@ -197,6 +197,12 @@ def _cmd_bench(args) -> int:
 def main(argv=None) -> int:
     """Entry point of ``stomach-unfold``; returns the exit status (0 ok, 2 bad input or failure, 130 cancelled)."""
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # "--cardia -54.9,27.7,64" would read as an option: glue point values to their flag
+    for flag in ("--cardia", "--pylorus", "--spacing"):
+        while flag in argv[:-1]:
+            i = argv.index(flag)
+            argv[i:i + 2] = [f"{flag}={argv[i + 1]}"]
     args = parser.parse_args(argv)
     try:
         if args.command == "unfold":

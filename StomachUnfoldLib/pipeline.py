@@ -47,9 +47,9 @@ class UnfoldParameters:
     spring_stiffness: float = 1.0
     damping: float = 0.5
     mass_damping: float = 0.2
-    unfolding_stiffness: float = 0.5
+    unfolding_stiffness: float = 2.0
     flattening_stiffness: float = 0.3   # pull toward the unfolded plane (0: the paper's forces only)
-    ramp_iterations: int = 20           # guided destinations and flattening ramp (0: the paper's fixed g)
+    ramp_iterations: int = 30           # guided destinations and flattening ramp (0: the paper's fixed g)
     max_iterations: int = 300
     min_iterations: int = 5
     output_spacing_mm: float | None = None  # unfolded volume spacing; default the input's in-plane spacing
@@ -263,7 +263,8 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
                                   inside_mm=cell_mm.max(), sample_mm=0.3 * cell_mm.min(),
                                   extend_mm=cell_mm.max())
     openings = [(cl.points_lps[0], -cl.tangents[0]), (cl.points_lps[-1], cl.tangents[-1])]
-    model = build_wall_model(crop, wall, lumen_c, d=d, cut_points_lps=cut, openings=openings)
+    model = build_wall_model(crop, wall, lumen_c, d=d, cut_points_lps=cut, openings=openings,
+                             centerline_lps=cl.points_lps)
     del wall
     seconds["wall model"] = time.perf_counter() - t
 

@@ -1,54 +1,78 @@
 """Preprocessing (Oda et al., Sec. 2.1): the stomach air region and the stomach wall region.
 
-The air region is the set of voxels below an HU threshold connected to where the cardia and pylorus
-points are; air outside the body (touching the side faces of the volume) and air not reached from the
-points (lungs, colon) is left out. With a stomach label volume (``--mask``) the label replaces the
-threshold. The wall region is the shell of tissue within a given thickness (mm) outside the lumen.
+The air region is the set of voxels below an HU threshold 6-connected to the air next to the cardia and
+pylorus points; air outside the body (connected to the side faces of the volume) and air not reached from
+the points (lungs, colon) is left out. With a stomach label (``--mask``) the label replaces the threshold.
+The wall region is the shell of tissue within a given thickness (mm) outside the lumen.
+
+All points are LPS mm; masks are bool arrays indexed ``[k, j, i]`` on the CT grid.
 """
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
 
-from .errors import AnatomyError, PointError
+from .errors import AnatomyError, InputError, PointError
 from .geometry import Volume, lps_to_ras
 
-__all__ = ["snap_to_region", "air_region", "lumen_from_mask", "wall_region", "bounding_box"]
+__all__ = ["snap_to_region", "air_region", "lumen_from_mask", "wall_region", "bounding_box",
+           "MAX_STOMACH_ML"]
+
+#: Air regions larger than this (mL) are not a stomach (lungs, bowel, outside air).
+MAX_STOMACH_ML = 4000.0
 
 
-def bounding_box(mask: np.ndarray, margin_vox=(0, 0, 0)):
-    """Index box (lo, hi) in (i, j, k) order, hi exclusive, of the True voxels of ``mask[k, j, i]`` grown by a margin."""
+# ---------------------------------------------------------------------------------------------- helpers
+def bounding_box(mask: np.ndarray, margin_vox=(0, 0, 0)) -> tuple[np.ndarray, np.ndarray]:
+    """Index box ``(lo, hi)`` in (i, j, k) voxels, hi exclusive, of the True voxels of ``mask[k, j, i]``.
+
+    Parameters
+    ----------
+    mask : (K, J, I) bool array
+    margin_vox : int or 3 ints
+        Margin in voxels along i, j, k added on each side; the box is clipped to the grid.
+
+    Returns
+    -------
+    lo, hi : (3,) int arrays
+        Ready for :meth:`Volume.crop` (``mask[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]`` is the crop).
+
+    Raises
+    ------
+    AnatomyError
+        If the mask is empty.
+    """
+    mask = np.asarray(mask, bool)
     if not mask.any():
-        raise AnatomyError("the stomach region is empty")
+        raise AnatomyError("the stomach region is empty: no voxel is set; check the points, threshold or mask")
     lo, hi = [], []
-    for axis_arr in range(3):
-        other = tuple(a for a in range(3) if a != axis_arr)
+    for ax in range(3):
+        other = tuple(a for a in range(3) if a != ax)
         idx = np.flatnonzero(mask.any(axis=other))
         lo.append(int(idx[0]))
         hi.append(int(idx[-1]) + 1)
-    lo_ijk = np.array(lo[::-1]) - np.asarray(margin_vox, int)
-    hi_ijk = np.array(hi[::-1]) + np.asarray(margin_vox, int)
+    margin = np.broadcast_to(np.asarray(margin_vox, int), (3,))
     size = np.array(mask.shape[::-1])
-    return np.clip(lo_ijk, 0, size), np.clip(hi_ijk, 0, size)
+    lo_ijk = np.clip(np.array(lo[::-1]) - margin, 0, size)
+    hi_ijk = np.clip(np.array(hi[::-1]) + margin, 0, size)
+    return lo_ijk, hi_ijk
 
 
 def _ras_text(p_lps) -> str:
-    return str(np.round(lps_to_ras(np.asarray(p_lps, float)), 1).tolist())
+    """Point as RAS text (mm, 1 decimal) for messages shown to Slicer/command-line users."""
+    return str(np.round(lps_to_ras(np.asarray(p_lps, float).reshape(3)), 1).tolist())
 
 
-def snap_to_region(mask: np.ndarray, volume: Volume, point_lps, max_distance_mm: float = 20.0,
-                   name: str = "point") -> np.ndarray:
-    """LPS centre (mm) of the True voxel of ``mask`` nearest to ``point_lps``, searched within max_distance_mm."""
-    p = np.asarray(point_lps, float).reshape(3)
-    if not volume.contains_lps(p[None])[0]:
-        lo, hi = volume.bounds_lps()
-        raise PointError(f"the {name} point (RAS {_ras_text(p)} mm) lies outside the volume (LPS bounds "
-                         f"{np.round(lo, 1).tolist()} to {np.round(hi, 1).tolist()})")
+def _nearest_in_box(mask: np.ndarray, volume: Volume, p: np.ndarray, radius_mm: float):
+    """Nearest True voxel of ``mask`` to LPS point ``p`` within an index box covering radius_mm; (lps, dist) or None."""
     ijk = volume.lps_to_index(p[None])[0]
-    r = np.ceil(max_distance_mm / volume.spacing).astype(int) + 1
+    # the box must hold the ball of radius_mm for any (orthonormal, maybe flipped) direction
+    r = np.ceil(radius_mm / volume.spacing).astype(int) + 1
     size = np.array(volume.size)
     lo = np.clip(np.floor(ijk).astype(int) - r, 0, size)
     hi = np.clip(np.ceil(ijk).astype(int) + r + 1, 0, size)
+    if np.any(hi <= lo):
+        return None
     sub = mask[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
     kk, jj, ii = np.nonzero(sub)
     if len(ii) == 0:
@@ -57,19 +81,97 @@ def snap_to_region(mask: np.ndarray, volume: Volume, point_lps, max_distance_mm:
     pts = volume.index_to_lps(cand)
     d = np.linalg.norm(pts - p, axis=1)
     best = int(np.argmin(d))
-    if d[best] > max_distance_mm:
+    return pts[best], float(d[best])
+
+
+def _nearest_true(mask: np.ndarray, volume: Volume, p: np.ndarray, max_distance_mm: float):
+    """Nearest True voxel centre (LPS mm) within max_distance_mm, else None; the point may lie off the grid."""
+    hit = _nearest_in_box(mask, volume, p, max_distance_mm)
+    if hit is None or hit[1] > max_distance_mm:
         return None
-    return pts[best]
+    return hit[0]
 
 
-def _side_faces(volume: Volume):
-    """Array axes (of k, j, i) whose faces are the body's sides: all but the one closest to superior-inferior."""
-    si_axis_ijk = int(np.argmax(np.abs(volume.direction[2, :])))  # column with the largest S component
-    si_axis_arr = 2 - si_axis_ijk
-    return [a for a in range(3) if a != si_axis_arr]
+def _nearest_distance_text(mask: np.ndarray, volume: Volume, p: np.ndarray, start_mm: float) -> str:
+    """How far (mm) the nearest True voxel is, searched in growing boxes; text for error messages."""
+    extent = float(np.max(np.array(volume.size) * volume.spacing))
+    r = max(start_mm, 1.0) * 3.0
+    while True:
+        hit = _nearest_in_box(mask, volume, p, r)
+        if hit is not None and hit[1] <= r:
+            return f"the nearest is {hit[1]:.1f} mm away"
+        if r > 2.0 * extent:
+            return "there is none in the volume"
+        r *= 3.0
+
+
+def _voxel(volume: Volume, p_lps: np.ndarray) -> tuple[int, int, int]:
+    """Array index (k, j, i) of the voxel whose centre is nearest to LPS point p (mm)."""
+    i, j, k = np.rint(volume.lps_to_index(np.asarray(p_lps, float)[None])[0]).astype(int)
+    return int(k), int(j), int(i)
+
+
+def _check_inside(volume: Volume, p: np.ndarray, name: str) -> None:
+    """Raise PointError naming the point and the volume bounds (LPS mm) if p lies outside the grid."""
+    if not volume.contains_lps(p[None])[0]:
+        lo, hi = volume.bounds_lps()
+        raise PointError(f"the {name} point (LPS {np.round(p, 1).tolist()} mm, RAS {_ras_text(p)} mm) lies "
+                         f"outside the volume, whose LPS bounds are {np.round(lo, 1).tolist()} to "
+                         f"{np.round(hi, 1).tolist()} mm; place the point inside the CT")
+
+
+# ---------------------------------------------------------------------------------------------- snapping
+def snap_to_region(mask: np.ndarray, volume: Volume, point_lps, max_distance_mm: float = 20.0,
+                   name: str = "point") -> np.ndarray:
+    """LPS centre (mm) of the True voxel of ``mask`` nearest to ``point_lps`` (LPS mm), within max_distance_mm.
+
+    Only a box around the point is searched, so this is cheap on a full CT. Anisotropic spacing and any
+    direction matrix are handled (distances are Euclidean in mm).
+
+    Parameters
+    ----------
+    mask : (K, J, I) bool array on ``volume``'s grid
+    volume : Volume
+        Gives the geometry of ``mask``.
+    point_lps : (3,) array-like
+        The point, LPS mm. It may lie in the region or near it (e.g. on the wall around the lumen).
+    max_distance_mm : float
+        Largest distance (mm) to search.
+    name : str
+        Name of the point used in error messages ("cardia", "pylorus").
+
+    Returns
+    -------
+    (3,) float array
+        LPS position (mm) of the nearest True voxel centre.
+
+    Raises
+    ------
+    PointError
+        If the point lies outside the volume, or no True voxel lies within ``max_distance_mm``.
+    """
+    p = np.asarray(point_lps, float).reshape(3)
+    if not np.all(np.isfinite(p)):
+        raise PointError(f"the {name} point has non-finite coordinates {p.tolist()}; give it in mm")
+    _check_inside(volume, p, name)
+    hit = _nearest_true(mask, volume, p, max_distance_mm)
+    if hit is None:
+        raise PointError(f"no region voxel lies within {max_distance_mm:g} mm of the {name} point (RAS "
+                         f"{_ras_text(p)} mm); {_nearest_distance_text(mask, volume, p, max_distance_mm)}; "
+                         "move the point into the stomach lumen")
+    return hit
+
+
+# ---------------------------------------------------------------------------------------------- air region
+def _side_axes(volume: Volume) -> list[int]:
+    """Array axes (0=k, 1=j, 2=i) whose faces are the body's sides: all but the one closest to superior-inferior."""
+    si_ijk = int(np.argmax(np.abs(volume.direction[2, :])))  # grid axis with the largest S component
+    si_arr = 2 - si_ijk
+    return [a for a in range(3) if a != si_arr]
 
 
 def _touches_faces(mask: np.ndarray, axes) -> bool:
+    """True if ``mask`` has a True voxel on either face of one of the given array axes."""
     for a in axes:
         if np.take(mask, 0, axis=a).any() or np.take(mask, mask.shape[a] - 1, axis=a).any():
             return True
@@ -77,86 +179,155 @@ def _touches_faces(mask: np.ndarray, axes) -> bool:
 
 
 def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0, max_snap_mm: float = 20.0,
-               progress=None):
-    """Stomach air region (bool mask on ct's grid): air below threshold_hu (HU) 6-connected to the two points.
+               progress=None) -> tuple[np.ndarray, dict]:
+    """Stomach air region (bool mask on ct's grid): voxels below threshold_hu (HU) 6-connected to the points' air.
 
-    Returns ``(mask, info)`` with info "volume_ml", "n_components", "seeds_lps", "warnings".
+    Each point (LPS mm) is snapped to the nearest air voxel within ``max_snap_mm``; the air component(s)
+    reached are flood-filled with 6-connectivity. Lungs and colon gas are left out because they are not
+    connected to the seeds.
+
+    Parameters
+    ----------
+    ct : Volume
+        CT in HU.
+    cardia_lps, pylorus_lps : (3,) array-like
+        The two points, LPS mm, in the gas-filled lumen or on the wall near it.
+    threshold_hu : float
+        Air threshold (HU); voxels strictly below it are air.
+    max_snap_mm : float
+        How far (mm) from each point air is looked for.
+    progress : Progress or callable(fraction), optional
+
+    Returns
+    -------
+    mask : (K, J, I) bool array
+    info : dict
+        ``volume_ml`` (mL), ``n_components`` (1 or 2), ``seeds_lps`` (snapped points, LPS mm),
+        ``warnings`` (list of str).
+
+    Raises
+    ------
+    PointError
+        If a point lies outside the volume.
+    AnatomyError
+        If no air lies near a point (pass a stomach mask), or the air reached touches the side faces of the
+        volume (outside air) or is larger than ``MAX_STOMACH_ML`` (lung, bowel).
     """
     from skimage.morphology import flood
 
+    pts = {"cardia": np.asarray(cardia_lps, float).reshape(3), "pylorus": np.asarray(pylorus_lps, float).reshape(3)}
+    for name, p in pts.items():
+        _check_inside(ct, p, name)
     air = ct.array < threshold_hu
     if progress is not None:
-        progress(0.2)
-    seeds = []
-    for name, p in (("cardia", cardia_lps), ("pylorus", pylorus_lps)):
-        s = snap_to_region(air, ct, p, max_snap_mm, name)
+        progress(0.1)
+    seeds = {}
+    for name, p in pts.items():
+        s = _nearest_true(air, ct, p, max_snap_mm)
         if s is None:
-            raise AnatomyError(f"no air (below {threshold_hu:g} HU) within {max_snap_mm:g} mm of the {name} point "
-                               f"(RAS {_ras_text(p)} mm): the stomach holds no gas there; pass a stomach label "
+            raise AnatomyError(f"the stomach has no gas near the {name} point (RAS {_ras_text(p)} mm): no voxel "
+                               f"below {threshold_hu:g} HU within {max_snap_mm:g} mm "
+                               f"({_nearest_distance_text(air, ct, p, max_snap_mm)}); pass a stomach label "
                                "with --mask, or place the point in the gas-filled lumen")
-        seeds.append(s)
-    faces = _side_faces(ct)
-    region = np.zeros_like(air)
+        seeds[name] = s
+    sides = _side_axes(ct)
+    voxel_ml = float(np.prod(ct.spacing)) / 1000.0
+    region = None
     n_comp = 0
-    warnings = []
-    for name, s in zip(("cardia", "pylorus"), seeds):
-        ijk = np.rint(ct.lps_to_index(s[None])[0]).astype(int)
-        if region[ijk[2], ijk[1], ijk[0]]:
+    for n_done, (name, s) in enumerate(seeds.items()):
+        kji = _voxel(ct, s)
+        if region is not None and region[kji]:
             continue
-        comp = flood(air, (ijk[2], ijk[1], ijk[0]), connectivity=1)
-        if _touches_faces(comp, faces):
-            raise AnatomyError(f"the air reached from the {name} point touches the side of the volume: the point is "
-                               "probably in the air outside the body; place it inside the stomach")
-        vol_ml = comp.sum() * float(np.prod(ct.spacing)) / 1000.0
-        if vol_ml > 4000.0:
-            raise AnatomyError(f"the air reached from the {name} point is {vol_ml:.0f} mL, too large for a stomach: "
-                               "the point is probably in a lung or the air leaks into the bowel; move the point "
+        comp = flood(air, kji, connectivity=1)
+        if _touches_faces(comp, sides):
+            raise AnatomyError(f"the air reached from the {name} point (RAS {_ras_text(pts[name])} mm) is connected "
+                               "to the side of the volume: the point is probably in the air outside the body (or "
+                               "in lung); place it inside the stomach, or pass a stomach label with --mask")
+        vol_ml = float(np.count_nonzero(comp)) * voxel_ml
+        if vol_ml > MAX_STOMACH_ML:
+            raise AnatomyError(f"the air reached from the {name} point (RAS {_ras_text(pts[name])} mm) is "
+                               f"{vol_ml:.0f} mL, too large for a stomach (> {MAX_STOMACH_ML:.0f} mL): the point is "
+                               "probably in outside air or lung, or the gas leaks into the bowel; move the point "
                                "or pass a stomach label with --mask")
-        region |= comp
+        region = comp if region is None else (region | comp)
         n_comp += 1
         if progress is not None:
-            progress(0.5 + 0.5 * n_comp / 2)
+            progress(0.2 + 0.4 * (n_done + 1))
+    warnings = []
     if n_comp == 2:
-        warnings.append("the cardia and pylorus reach separate air pockets; both are used as the stomach lumen")
-    info = {"volume_ml": float(region.sum() * np.prod(ct.spacing) / 1000.0), "n_components": n_comp,
-            "seeds_lps": [s.tolist() for s in seeds], "warnings": warnings}
+        warnings.append("the cardia and pylorus points reach two separate air pockets; their union is used as "
+                        "the stomach lumen (check the points, or pass a stomach label with --mask)")
+    info = {"volume_ml": float(np.count_nonzero(region)) * voxel_ml, "n_components": n_comp,
+            "seeds_lps": [seeds["cardia"].tolist(), seeds["pylorus"].tolist()], "warnings": warnings}
+    if progress is not None:
+        progress(1.0)
     return region, info
 
 
-def lumen_from_mask(mask: np.ndarray, ct: Volume, cardia_lps, pylorus_lps, max_snap_mm: float = 20.0):
-    """Lumen from a stomach label: the mask's connected component(s) reached by the two points; returns (mask, info)."""
+def lumen_from_mask(mask: np.ndarray, ct: Volume, cardia_lps, pylorus_lps,
+                    max_snap_mm: float = 20.0) -> tuple[np.ndarray, dict]:
+    """Lumen from a stomach label (bool on ct's grid): the 6-connected component(s) reached by the two points.
+
+    Used in place of :func:`air_region` when the stomach holds no gas. Returns ``(mask, info)`` with the
+    same info keys as :func:`air_region` (volume in mL, seeds in LPS mm).
+
+    Raises
+    ------
+    InputError
+        If the mask is not on the CT grid.
+    AnatomyError
+        If the mask is empty.
+    PointError
+        If a point lies outside the volume or more than ``max_snap_mm`` (mm) from the mask.
+    """
+    from skimage.morphology import flood
+
     mask = np.asarray(mask, bool)
+    if mask.shape != ct.array.shape:
+        raise InputError(f"the stomach mask has shape {mask.shape} but the CT {ct.array.shape}; resample the "
+                           "mask onto the CT grid")
     if not mask.any():
         raise AnatomyError("the stomach mask is empty on the CT grid; check the label value and that the label "
                            "volume overlaps the CT")
-    lab, n = ndimage.label(mask)
-    keep = np.zeros(n + 1, bool)
     seeds = []
     for name, p in (("cardia", cardia_lps), ("pylorus", pylorus_lps)):
-        s = snap_to_region(mask, ct, p, max_snap_mm, name)
-        if s is None:
-            raise PointError(f"the {name} point (RAS {_ras_text(p)} mm) is more than {max_snap_mm:g} mm from the "
-                             "stomach mask; place it in or on the stomach")
-        ijk = np.rint(ct.lps_to_index(s[None])[0]).astype(int)
-        keep[lab[ijk[2], ijk[1], ijk[0]]] = True
-        seeds.append(s)
-    keep[0] = False
-    region = keep[lab]
+        seeds.append(snap_to_region(mask, ct, p, max_snap_mm, name))
+    # flood on the mask's bounding box only
+    lo, hi = bounding_box(mask)
+    sub = mask[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+    reg = np.zeros_like(sub)
+    n_comp = 0
+    for s in seeds:
+        k, j, i = _voxel(ct, s)
+        kji = (k - lo[2], j - lo[1], i - lo[0])
+        if reg[kji]:
+            continue
+        reg |= flood(sub, kji, connectivity=1)
+        n_comp += 1
+    region = np.zeros_like(mask)
+    region[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]] = reg
     warnings = []
-    if keep.sum() > 1:
-        warnings.append("the cardia and pylorus lie in separate parts of the stomach mask; both are used")
-    return region, {"volume_ml": float(region.sum() * np.prod(ct.spacing) / 1000.0),
-                    "n_components": int(keep.sum()), "seeds_lps": [s.tolist() for s in seeds],
-                    "warnings": warnings}
+    if n_comp > 1:
+        warnings.append("the cardia and pylorus lie in separate parts of the stomach mask; their union is used")
+    return region, {"volume_ml": float(np.count_nonzero(reg)) * float(np.prod(ct.spacing)) / 1000.0,
+                    "n_components": n_comp, "seeds_lps": [s.tolist() for s in seeds], "warnings": warnings}
 
 
+# ---------------------------------------------------------------------------------------------- wall region
 def wall_region(lumen: np.ndarray, spacing, thickness_mm: float = 5.0) -> np.ndarray:
-    """Wall shell: voxels outside the lumen within thickness_mm (Euclidean, anisotropic spacing) of it."""
-    spacing = np.asarray(spacing, float)
+    """Wall shell (bool, lumen's grid): voxels outside the lumen within thickness_mm (mm, Euclidean) of it.
+
+    Distances are between voxel centres with the anisotropic ``spacing`` (i, j, k order, mm); the
+    distance transform runs on the lumen's bounding box grown by the thickness only.
+    """
+    spacing = np.asarray(spacing, float).reshape(3)
+    if not thickness_mm > 0:
+        raise InputError(f"the wall thickness must be positive, got {thickness_mm} mm")
+    lumen = np.asarray(lumen, bool)
     margin = tuple(int(np.ceil(thickness_mm / s)) + 1 for s in spacing)
     lo, hi = bounding_box(lumen, margin)
     sub = lumen[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
     dist = ndimage.distance_transform_edt(~sub, sampling=spacing[::-1])
     out = np.zeros_like(lumen)
-    out[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]] = (dist > 0) & (dist <= thickness_mm)
+    out[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]] = (~sub) & (dist <= thickness_mm)
     return out

@@ -26,11 +26,19 @@ def layer_runs(unfolded: Volume, threshold_hu: float = -400.0, min_gap_mm: float
     return starts.sum(axis=0) + a[0].astype(int)
 
 
-def overlap_fraction(unfolded: Volume, threshold_hu: float = -400.0, min_gap_mm: float = 1.5) -> float:
-    """Fraction of the seen area (columns with any tissue) where more than one wall layer lies on the ray."""
+def overlap_fraction(unfolded: Volume, threshold_hu: float = -400.0, min_gap_mm: float = 1.5,
+                     min_patch: int = 2) -> float:
+    """Fraction of the seen area (columns with any tissue) where more than one wall layer lies on the ray.
+
+    Isolated columns (patches narrower than ``min_patch`` pixels, e.g. one-voxel rasterisation pinholes)
+    are ignored: a real fold covers an area. ``min_patch=1`` counts every column.
+    """
     runs = layer_runs(unfolded, threshold_hu, min_gap_mm)
     seen = runs > 0
-    return float((runs[seen] > 1).mean()) if seen.any() else 0.0
+    over = runs > 1
+    if min_patch > 1:
+        over = ndimage.binary_opening(over, structure=np.ones((min_patch, min_patch), bool))
+    return float(over[seen].mean()) if seen.any() else 0.0
 
 
 def visible_markers(unfolded: Volume, marker_hu: float = 200.0, threshold_hu: float = -400.0,

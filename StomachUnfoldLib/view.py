@@ -14,8 +14,12 @@ from .geometry import Volume
 __all__ = ["first_hit", "shade_first_hit", "render_view"]
 
 
-def first_hit(unfolded: Volume, threshold_hu: float = -400.0):
-    """First voxel above ``threshold_hu`` (HU) along -k per (j, i) column: returns (k index or -1, HU at hit)."""
+def first_hit(unfolded: Volume, threshold_hu: float = -400.0, depth_mm: float = 2.5):
+    """First voxel above ``threshold_hu`` (HU) along -k per (j, i) column: returns (k index or -1, surface HU).
+
+    The surface HU is the maximum over ``depth_mm`` below the hit, as a renderer's surface colour
+    integrates a little depth; a single sample at the rim of a small dense bead would miss it.
+    """
     a = unfolded.array  # (k, j, i)
     above = a > threshold_hu
     rev = above[::-1]
@@ -23,7 +27,11 @@ def first_hit(unfolded: Volume, threshold_hu: float = -400.0):
     any_hit = rev.any(axis=0)
     k = a.shape[0] - 1 - hit_rev
     k = np.where(any_hit, k, -1)
-    hu = np.take_along_axis(a, np.clip(k, 0, None)[None], axis=0)[0].astype(float)
+    n = max(1, int(round(depth_mm / float(unfolded.spacing[2]))) + 1)
+    hu = np.full(k.shape, -np.inf)
+    for dk in range(n):
+        kk = np.clip(k - dk, 0, None)
+        hu = np.maximum(hu, np.take_along_axis(a, kk[None], axis=0)[0].astype(float))
     hu[k < 0] = np.nan
     return k, hu
 

@@ -104,7 +104,8 @@ def _block_any(mask: np.ndarray, steps, shape_cells) -> np.ndarray:
 
 def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int = 8,
                      cut_points_lps: np.ndarray | None = None,
-                     openings: list[tuple[np.ndarray, np.ndarray]] | None = None) -> WallModel:
+                     openings: list[tuple[np.ndarray, np.ndarray]] | None = None,
+                     centerline_lps: np.ndarray | None = None) -> WallModel:
     """Build the hexahedral wall model on ``volume``'s grid (LPS mm) from wall and lumen masks.
 
     Parameters
@@ -120,6 +121,9 @@ def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int
         are removed (the hexahedra on the incision line).
     openings : list of (point_lps, outward_normal)
         Half-spaces beyond the cardia and pylorus: cells whose centre lies beyond a plane are removed.
+    centerline_lps : (K,3) array, optional
+        With it, an opening removes only cells whose nearest centreline point is that end's (first or last)
+        point, so a curled stomach does not lose its far parts to the half-space of the other end.
     """
     steps = grid_steps(volume.spacing, d)
     shape_vox = wall.shape  # (k, j, i)
@@ -153,9 +157,19 @@ def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int
         idx = np.argwhere(keep)
         centres = cell_centres_lps(idx)
         beyond = np.zeros(len(idx), bool)
-        for point, normal in openings:
+        nearest = None
+        if centerline_lps is not None:
+            from scipy.spatial import cKDTree
+
+            cl = np.asarray(centerline_lps, float)
+            _, nearest = cKDTree(cl).query(centres)
+            ends = {0: 0, 1: len(cl) - 1}
+        for which, (point, normal) in enumerate(openings):
             normal = np.asarray(normal, float) / np.linalg.norm(normal)
-            beyond |= (centres - np.asarray(point, float)) @ normal > 0
+            out = (centres - np.asarray(point, float)) @ normal > 0
+            if nearest is not None and which in ends:
+                out &= nearest == ends[which]
+            beyond |= out
         removed_open = int(beyond.sum())
         keep[tuple(idx[beyond].T)] = False
 

