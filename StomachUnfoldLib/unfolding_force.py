@@ -69,11 +69,13 @@ def unfolded_plane(incision_lps, inner_vertices_lps, centerline_lps=None) -> tup
     return n, b
 
 
-def base_line(incision_lps, n, b):
+def base_line(incision_lps, n, b, arc: str = "3d"):
     """Base line (Eq. 7) of the incision projected on Omega: points p_j, unit v1 (cardia to pylorus), v2 = n x v1.
 
-    Returns ``(p, v1, v2, u_proj)``: p (J,3) keeps the arc length of the projected incision along v1,
-    centred on the projection of the middle incision point.
+    Returns ``(p, v1, v2, u_proj)``: p (J,3) lies along v1 through the projection of the middle incision
+    point. With ``arc="projected"`` the spacing of p is the arc length of the projected incision (Eq. 7 as
+    printed); with ``arc="3d"`` (default) it is the incision's own arc length, so a stomach that leaves
+    the plane (twisted) keeps the length of its cut edges instead of buckling them.
     """
     u = np.asarray(incision_lps, float)
     n = _unit(n)
@@ -84,7 +86,7 @@ def base_line(incision_lps, n, b):
     if np.dot(v1, up[-1] - up[0]) < 0:
         v1 = -v1
     v2 = np.cross(n, v1)
-    seg = np.linalg.norm(np.diff(up, axis=0), axis=1)
+    seg = np.linalg.norm(np.diff(u if arc == "3d" else up, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     h = len(u) // 2
     p = up[h][None, :] + (s - s[h])[:, None] * v1[None, :]
@@ -150,7 +152,7 @@ class UnfoldingTargets:
         return np.stack([self.v1, self.v2, self.n], axis=1)
 
 
-def unfolding_targets(model, incision, centerline, depth=None) -> UnfoldingTargets:
+def unfolding_targets(model, incision, centerline, depth=None, arc: str = "3d") -> UnfoldingTargets:
     """Compute the unfolded plane, base line and destination points of the S_vb vertices of ``model``.
 
     ``depth`` (N,) is each vertex's signed depth below the inner wall in mm (see :func:`wall_depth`);
@@ -159,7 +161,7 @@ def unfolding_targets(model, incision, centerline, depth=None) -> UnfoldingTarge
     u = np.asarray(incision.points_lps, float)
     c = np.asarray(centerline.points_lps, float)
     n, b = unfolded_plane(u, model.vertices[model.inner], c)
-    p, v1, v2, _ = base_line(u, n, b)
+    p, v1, v2, _ = base_line(u, n, b, arc=arc)
     ids = np.flatnonzero(model.boundary)
     if depth is None:
         eps_all, _, k_all = stomach_radius(model.vertices, u, c)

@@ -80,14 +80,14 @@ def test_correspondence_round_trip_on_markers(j_run):
     assert np.allclose(back[ok], pts[ok], atol=1e-3)
 
 
-@pytest.mark.parametrize("kind", [dict(shape="bent"), dict(shape="straight"), dict(shape="thin_wall"),
+@pytest.mark.parametrize("kind", [dict(shape="bent"), dict(shape="straight"), dict(shape="twisted"), dict(shape="thin_wall"),
                                   dict(shape="j", spacing=(1.8, 1.8, 3.0)), dict(shape="j", flip_direction=True)])
 def test_shapes_unfold_with_every_marker_seen(kind):
     ct, truth = make_phantom(size="tiny", **kind)
     params = TINY if kind.get("shape") != "thin_wall" else UnfoldParameters(grid_size=3, wall_thickness_mm=3.0)
     res = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], params)
     assert len(visible_markers(res.unfolded)) == len(truth["markers"])
-    assert overlap_fraction(res.unfolded) < 0.02
+    assert overlap_fraction(res.unfolded) < 0.005
 
 
 def test_cli_writes_the_output_contract(tmp_path):

@@ -16,11 +16,15 @@ def test_plane_normal_points_to_convex_side_of_a_bent_incision():
 def test_base_line_keeps_arc_length_and_orientation():
     th = np.linspace(0, np.pi / 2, 51)
     u = np.stack([80 * np.cos(th), np.zeros_like(th), 80 * np.sin(th)], 1)
+    u[:, 1] = 15 * np.sin(2 * th)  # leaves the plane: projected length shorter than the 3D length
     n, b = unfolded_plane(u, u)
-    p, v1, v2, up = base_line(u, n, b)
+    p, v1, v2, up = base_line(u, n, b, arc="projected")
     seg_p = np.linalg.norm(np.diff(p, axis=0), axis=1).sum()
     seg_up = np.linalg.norm(np.diff(up, axis=0), axis=1).sum()
-    assert np.isclose(seg_p, seg_up)
+    assert np.isclose(seg_p, seg_up)  # Eq. 7 as printed
+    p3, *_ = base_line(u, n, b)
+    seg_u = np.linalg.norm(np.diff(u, axis=0), axis=1).sum()
+    assert np.isclose(np.linalg.norm(np.diff(p3, axis=0), axis=1).sum(), seg_u) and seg_u > seg_up + 1
     assert np.dot(p[-1] - p[0], up[-1] - up[0]) > 0  # cardia to pylorus
     assert np.allclose(np.cross(v1, v2), n)           # right-handed frame, viewer on +n
     assert np.allclose((p - b) @ n, 0, atol=1e-9)      # on the plane
