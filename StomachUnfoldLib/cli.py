@@ -124,13 +124,14 @@ class _Bar:
             from tqdm import tqdm
 
             self.bar = tqdm(total=1000, file=sys.stderr, bar_format="{desc:<18} {percentage:3.0f}%|{bar}| {elapsed}",
-                            leave=False)
+                            leave=False, mininterval=0.25 if sys.stderr.isatty() else 2.0)
 
     def __call__(self, stage: str, fraction: float):
         if self.bar is not None:
-            self.bar.set_description_str(stage)
-            self.bar.n = int(fraction * 1000)
-            self.bar.refresh()
+            n = int(fraction * 1000)
+            if stage != self.bar.desc or n - self.bar.n >= 10:
+                self.bar.set_description_str(stage, refresh=False)
+                self.bar.update(n - self.bar.n)
 
     def close(self):
         if self.bar is not None:

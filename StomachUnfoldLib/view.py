@@ -40,9 +40,19 @@ def shade_first_hit(unfolded: Volume, threshold_hu: float = -400.0, marker_hu: f
     """RGB uint8 image (rows = j from top to bottom reversed, columns = i) of the shaded first-hit view."""
     k, hu = first_hit(unfolded, threshold_hu)
     hit = k >= 0
-    height = np.where(hit, k * unfolded.spacing[2], np.nan)
+    # sub-voxel depth: where the profile crosses the threshold between the hit voxel and the one above
+    a = unfolded.array
+    kc = np.clip(k, 0, a.shape[0] - 1)
+    above = np.clip(kc + 1, 0, a.shape[0] - 1)
+    v0 = np.take_along_axis(a, kc[None], 0)[0].astype(float)
+    v1 = np.take_along_axis(a, above[None], 0)[0].astype(float)
+    frac = np.where((kc + 1 < a.shape[0]) & (v0 > v1), (v0 - threshold_hu) / np.maximum(v0 - v1, 1e-6), 0.0)
+    height = np.where(hit, (k + np.clip(frac, 0, 1)) * unfolded.spacing[2], np.nan)
     fill = np.nanmin(height) if hit.any() else 0.0
     hgt = np.where(hit, height, fill)
+    from scipy import ndimage
+
+    hgt = ndimage.gaussian_filter(hgt, 0.7)
     gy, gx = np.gradient(hgt, unfolded.spacing[1], unfolded.spacing[0])
     normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
