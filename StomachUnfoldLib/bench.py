@@ -25,16 +25,21 @@ class BenchCase(dict):
 def default_cases(quick: bool = False, full_size: bool = False) -> list[BenchCase]:
     """The phantom set: shapes and sizes of the benchmark (tiny ones when ``quick``)."""
     size = "tiny" if quick else "small"
-    cases = [BenchCase(name=f"{shape}-{size}", phantom=dict(shape=shape, size=size), params={})
+    # cells of 5.6 mm: the paper's d = 8 voxels at 0.7 mm, whatever the phantom's spacing
+    cell = {"grid_mm": 5.6}
+    cases = [BenchCase(name=f"{shape}-{size}", phantom=dict(shape=shape, size=size),
+                       params=dict(cell, wall_thickness_mm=3.0 if shape == "thin_wall" else 4.0))
              for shape in ("straight", "bent", "j", "twisted", "thin_wall")]
     cases.append(BenchCase(name=f"j-{size}-anisotropic", phantom=dict(shape="j", size=size,
                                                                      spacing=(1.2, 1.2, 2.5) if not quick
-                                                                     else (1.8, 1.8, 3.0)), params={}))
+                                                                     else (1.8, 1.8, 3.0)), params=dict(cell)))
     cases.append(BenchCase(name=f"j-{size}-flipped", phantom=dict(shape="j", size=size, flip_direction=True),
-                           params={}))
+                           params=dict(cell)))
     if not quick:
-        cases.append(BenchCase(name="j-small-rugae", phantom=dict(shape="j", size="small", rugae=True), params={}))
+        cases.append(BenchCase(name="j-small-rugae", phantom=dict(shape="j", size="small", rugae=True),
+                               params=dict(cell)))
     if full_size:
+        # the paper's setting: d = 8 voxels at 0.7 mm
         cases.append(BenchCase(name="j-full-512x512x400", phantom=dict(shape="j", size="full"), params={}))
     return cases
 

@@ -23,9 +23,8 @@ __all__ = ["Centerline", "compute_centerline"]
 class Centerline:
     """Centreline from cardia to pylorus: points (K,3, LPS mm), radius (K, mm), unit tangents (K,3), arc length (K, mm).
 
-    ``radius_mm`` is the distance (mm) from each point to the lumen boundary, measured as the Euclidean
-    distance transform does: to the nearest non-lumen voxel centre (up to half a voxel more than the
-    distance to the voxel faces).
+    ``radius_mm`` is the distance (mm) from each point to the lumen boundary (the faces between lumen
+    and non-lumen voxels), the shortest of many rays cast from the point; 0 for a point outside the lumen.
     """
 
     points_lps: np.ndarray
@@ -88,58 +87,132 @@ def _block_reduce(mask: np.ndarray, f_kji, majority: bool) -> np.ndarray:
     return 2 * count >= int(np.prod(f))
 
 
-def _boundary_points(lumen: np.ndarray, volume: Volume) -> np.ndarray:
-    """LPS centres (mm) of the non-lumen voxels 6-adjacent to the lumen; the grid edge counts as non-lumen.
-
-    The nearest non-lumen voxel centre to any point inside the lumen is one of these, so a KD-tree on them
-    gives the lumen's Euclidean distance transform at any continuous point.
-    """
-    pad = np.pad(lumen, 1, constant_values=False)
-    near = np.zeros_like(pad)
-    near[1:] |= pad[:-1]
-    near[:-1] |= pad[1:]
-    near[:, 1:] |= pad[:, :-1]
-    near[:, :-1] |= pad[:, 1:]
-    near[:, :, 1:] |= pad[:, :, :-1]
-    near[:, :, :-1] |= pad[:, :, 1:]
-    kk, jj, ii = np.nonzero(near & ~pad)
-    return volume.index_to_lps(np.stack([ii - 1, jj - 1, kk - 1], axis=1).astype(float))
+def _fibonacci_directions(n: int) -> np.ndarray:
+    """n nearly uniform unit vectors (n,3) on the sphere (Fibonacci lattice)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = np.pi * (1.0 + 5 ** 0.5) * k
+    r = np.sqrt(1.0 - z ** 2)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
 def _normals(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors (K,3) perpendicular to unit tangents t (K,3) and to each other."""
+    """Two unit vectors (K,3) perpendicular to unit vectors t (K,3) and to each other."""
     ref = np.where(np.abs(t[:, [0]]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
     n1 = np.cross(t, ref)
     n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
     return n1, np.cross(t, n1)
 
 
-def _centre_points(pts: np.ndarray, tree: cKDTree, window_mm: float, step_mm: float, tol_mm: float) -> np.ndarray:
-    """Move each inner point (LPS mm) in its normal plane to the middle of the lumen, by at most window_mm.
+class _RayCaster:
+    """Exit distances (mm) of rays from points inside a bool mask, by nearest-voxel sampling along the ray.
 
-    Candidate offsets on a square grid in the normal plane are scored by their distance to the lumen
-    boundary (KD-tree of boundary voxel centres); the point goes to the centroid of the candidates within
-    ``tol_mm`` of the best score. This removes the offset of up to half a coarse voxel left by the
-    coarse path, without letting the curve wander (the window is small).
+    Outside the grid counts as outside the mask. A ray that does not leave the mask within its length
+    ``t_max`` gets ``t_max``; a ray from a point outside the mask gets 0.
+    """
+
+    def __init__(self, mask: np.ndarray, volume: Volume, step_mm: float, budget: int = 3_000_000):
+        self.mask = mask
+        self.inv = np.linalg.inv(volume.direction * volume.spacing[None, :])  # LPS mm -> index
+        self.origin = volume.origin
+        self.shape_ijk = np.array(mask.shape[::-1])
+        self.step = float(step_mm)
+        self.budget = budget
+
+    def _inside(self, ijk: np.ndarray) -> np.ndarray:
+        """Mask value at continuous indices (..., 3) (i, j, k) by nearest voxel; False off the grid."""
+        idx = np.rint(ijk).astype(np.intp)
+        ok = np.all((idx >= 0) & (idx < self.shape_ijk), axis=-1)
+        idx = np.where(ok[..., None], idx, 0)
+        return ok & self.mask[idx[..., 2], idx[..., 1], idx[..., 0]]
+
+    def exit_distance(self, p: np.ndarray, u: np.ndarray, t_max: np.ndarray) -> np.ndarray:
+        """Distance (mm) along unit rays u (K,D,3) from points p (K,3) to the mask boundary, at most t_max (K,)."""
+        K, D = u.shape[:2]
+        out = np.zeros((K, D))
+        p_idx = (p - self.origin) @ self.inv.T
+        u_idx = u @ self.inv.T
+        start_in = self._inside(p_idx)
+        n_s = np.maximum(1, np.ceil(t_max / self.step).astype(int))
+        order = np.argsort(n_s)
+        a = 0
+        while a < K:
+            # a chunk of points with similar ray lengths, within the sample budget
+            b = a + 1
+            while b < K and (b + 1 - a) * D * n_s[order[b]] <= self.budget:
+                b += 1
+            sel = order[a:b]
+            S = int(n_s[sel].max())
+            t = (np.arange(S) + 1.0) * self.step
+            q = p_idx[sel, None, None, :] + t[None, None, :, None] * u_idx[sel, :, None, :]
+            inside = self._inside(q) | (t[None, None, :] > t_max[sel, None, None])
+            hit = ~inside
+            first = np.argmax(hit, axis=2)
+            d = np.where(hit.any(axis=2), (first + 0.5) * self.step, t_max[sel, None])
+            out[sel] = np.minimum(d, t_max[sel, None])
+            a = b
+        out[~start_in] = 0.0
+        return out
+
+
+_DIRS = _fibonacci_directions(128)
+
+
+def _cone(half_angle: float, n_ring: int = 8) -> np.ndarray:
+    """Unit vectors around +z: the axis and two rings at half and full ``half_angle`` (radians)."""
+    dirs = [np.array([0.0, 0.0, 1.0])]
+    for a in (0.5 * half_angle, half_angle):
+        phi = 2 * np.pi * np.arange(n_ring) / n_ring + (a == half_angle) * np.pi / n_ring
+        dirs.append(np.stack([np.sin(a) * np.cos(phi), np.sin(a) * np.sin(phi), np.full(n_ring, np.cos(a))], 1))
+    return np.vstack([dirs[0][None], dirs[1], dirs[2]])
+
+
+_CONE = _cone(np.radians(12.0))
+
+
+def _radius(rc: _RayCaster, pts: np.ndarray, t_max: np.ndarray) -> np.ndarray:
+    """Distance (mm) from points (K,3, LPS) to the mask boundary: shortest of 128 rays, refined around the best."""
+    K = len(pts)
+    d = rc.exit_distance(pts, np.broadcast_to(_DIRS, (K,) + _DIRS.shape), t_max)
+    best = _DIRS[np.argmin(d, axis=1)]  # (K,3)
+    n1, n2 = _normals(best)
+    local = _CONE[None, :, 0:1] * n1[:, None] + _CONE[None, :, 1:2] * n2[:, None] + _CONE[None, :, 2:3] * best[:, None]
+    d2 = rc.exit_distance(pts, local, np.minimum(d.min(axis=1) + rc.step, t_max))
+    return np.minimum(d.min(axis=1), d2.min(axis=1))
+
+
+def _centre_points(rc: _RayCaster, pts: np.ndarray, radius: np.ndarray, window_mm: float,
+                   n_dirs: int = 16, n_iter: int = 3) -> np.ndarray:
+    """Move the inner points (LPS mm) in their normal planes to the middle of the lumen, by at most window_mm.
+
+    From each point, rays in opposite directions of its normal plane meet the wall at t+ and t-; the
+    shift is the mean over directions of ``(t+ - t-) u``, which moves a point of a circular section to
+    its centre. This removes the offset of up to half a coarse voxel left by the coarse path, without
+    letting the curve wander (the shift is bounded).
     """
     if len(pts) < 3:
         return pts
     t = np.gradient(pts, axis=0)
     t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
     n1, n2 = _normals(t)
-    m = int(min(12, np.ceil(window_mm / step_mm)))
-    g = np.arange(-m, m + 1) * (window_mm / max(m, 1))
-    a, b = [x.ravel() for x in np.meshgrid(g, g, indexing="ij")]
-    inside = a ** 2 + b ** 2 <= window_mm ** 2 + 1e-9
-    a, b = a[inside], b[inside]
-    cand = pts[:, None, :] + a[None, :, None] * n1[:, None, :] + b[None, :, None] * n2[:, None, :]
-    d = tree.query(cand.reshape(-1, 3))[0].reshape(len(pts), len(a))
-    top = d >= d.max(axis=1, keepdims=True) - tol_mm
-    w = top / top.sum(axis=1, keepdims=True)
-    shift = (w[:, :, None] * (cand - pts[:, None, :])).sum(axis=1)
-    shift = ndimage.gaussian_filter1d(shift, 1.0, axis=0, mode="nearest")
-    shift[0] = shift[-1] = 0.0
-    return pts + shift
+    th = np.pi * np.arange(n_dirs // 2) / (n_dirs // 2)
+    u = np.cos(th)[None, :, None] * n1[:, None] + np.sin(th)[None, :, None] * n2[:, None]  # (K, M, 3)
+    u = np.concatenate([u, -u], axis=1)
+    t_max = 3.0 * radius + 2.0 * window_mm + rc.step
+    cur = pts.copy()
+    for _ in range(n_iter):
+        d = rc.exit_distance(cur, u, t_max)
+        m = n_dirs // 2
+        shift = ((d[:, :m] - d[:, m:])[:, :, None] * u[:, :m]).mean(axis=1)
+        cur = cur + shift
+        off = cur - pts
+        off -= (off * t).sum(axis=1, keepdims=True) * t  # stay in the normal plane
+        norm = np.linalg.norm(off, axis=1, keepdims=True)
+        off *= np.minimum(1.0, window_mm / np.maximum(norm, 1e-12))
+        off = ndimage.gaussian_filter1d(off, 1.0, axis=0, mode="nearest")
+        off[0] = off[-1] = 0.0
+        cur = pts + off
+    return cur
 
 
 def _snap_any(mask: np.ndarray, volume: Volume, p: np.ndarray, max_mm: float):
@@ -187,9 +260,10 @@ def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lp
     The path minimises the integral of ``1 / (dt / dt_max + 0.05) ** 2`` (``dt`` the coarse distance to
     the wall in mm), so it runs along the middle of the lumen; it is then smoothed with a Gaussian of
     about 2 coarse voxels along the curve and each point is re-centred in its normal plane on the
-    full-resolution lumen (by at most 0.75 coarse voxel). The radius is the full-resolution Euclidean
-    distance to the nearest non-lumen voxel centre, evaluated exactly at each point (KD-tree of the
-    lumen's outer boundary voxels, so no distance transform of the whole lumen is needed).
+    full-resolution lumen (by at most 0.75 coarse voxel). The radius is the full-resolution distance to
+    the lumen boundary: the shortest of 128 rays cast from the point (then refined around the shortest),
+    sampled every half voxel on the full-resolution lumen, so no distance transform of the whole
+    full-resolution lumen is needed (that would take seconds on a CT).
     """
     from skimage.graph import MCP_Geometric
 
@@ -262,13 +336,18 @@ def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lp
         progress(0.8)
 
     # centre the points on the full-resolution lumen, then measure the radius there
-    tree = cKDTree(_boundary_points(sub, Volume(np.zeros((1, 1, 1)), volume.spacing, crop_origin,
-                                                volume.direction)))
-    fine = float(volume.spacing.min())
-    if np.any(f > 1):
-        pts = _centre_points(pts, tree, window_mm=0.75 * float(csp.max()), step_mm=0.5 * fine, tol_mm=0.5 * fine)
-        pts = _resample(pts, step_mm)
-    radius = tree.query(pts)[0]
+    geo = Volume(np.zeros((1, 1, 1), np.uint8), volume.spacing, crop_origin, volume.direction)
+    rc = _RayCaster(sub, geo, step_mm=0.5 * float(volume.spacing.min()))
+    dt_vol = Volume(dt.astype(np.float32), csp, c_origin, volume.direction)
+    bound = 1.8 * float(np.linalg.norm(csp)) + float(volume.spacing.max())  # coarse DT -> fine DT error bound
+
+    def t_max(p):
+        return dt_vol.sample(p, order=1, cval=0.0).astype(float) + bound
+
+    r0 = _radius(rc, pts, t_max(pts))
+    pts = _centre_points(rc, pts, r0, window_mm=0.75 * float(csp.max()))
+    pts = _resample(pts, step_mm)
+    radius = _radius(rc, pts, t_max(pts))
     t = np.gradient(pts, axis=0)
     t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])

@@ -47,7 +47,7 @@ class UnfoldParameters:
     spring_stiffness: float = 1.0
     damping: float = 0.5
     mass_damping: float = 0.2
-    unfolding_stiffness: float = 5.0
+    unfolding_stiffness: float = 10.0
     flattening_stiffness: float = 0.3   # pull toward the unfolded plane (0: the paper's forces only)
     ramp_iterations: int = 30           # guided destinations and flattening ramp (0: the paper's fixed g)
     max_iterations: int = 300

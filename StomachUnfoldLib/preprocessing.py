@@ -85,11 +85,26 @@ def _nearest_in_box(mask: np.ndarray, volume: Volume, p: np.ndarray, radius_mm: 
 
 
 def _nearest_true(mask: np.ndarray, volume: Volume, p: np.ndarray, max_distance_mm: float):
-    """Nearest True voxel centre (LPS mm) within max_distance_mm, else None; the point may lie off the grid."""
-    hit = _nearest_in_box(mask, volume, p, max_distance_mm)
-    if hit is None or hit[1] > max_distance_mm:
-        return None
-    return hit[0]
+    """Nearest True voxel centre (LPS mm) within max_distance_mm, else None; the point may lie off the grid.
+
+    The voxel containing the point is tried first (its centre is the nearest voxel centre), then boxes
+    of growing size, so a point in or next to the region costs almost nothing.
+    """
+    i, j, k = np.rint(volume.lps_to_index(p[None])[0]).astype(int)
+    size = volume.size
+    if 0 <= i < size[0] and 0 <= j < size[1] and 0 <= k < size[2] and mask[k, j, i]:
+        q = volume.index_to_lps(np.array([[i, j, k]], float))[0]
+        if np.linalg.norm(q - p) <= max_distance_mm:
+            return q
+    r = min(4.0 * float(volume.spacing.max()), max_distance_mm)
+    while True:
+        hit = _nearest_in_box(mask, volume, p, r)
+        # the box holds every voxel within r mm, so a hit closer than r is the nearest one
+        if hit is not None and hit[1] <= r:
+            return hit[0] if hit[1] <= max_distance_mm else None
+        if r >= max_distance_mm:
+            return None
+        r = min(3.0 * r, max_distance_mm)
 
 
 def _nearest_distance_text(mask: np.ndarray, volume: Volume, p: np.ndarray, start_mm: float) -> str:

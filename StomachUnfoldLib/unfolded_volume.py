@@ -85,8 +85,8 @@ def label_map(grid: UnfoldedGrid, deformed: np.ndarray, tets: np.ndarray, chunk_
     """Tet id per output voxel (int32 array of shape ``grid.shape_kji``, -1 outside) and the number of overlap voxels.
 
     Rasterises each deformed tetrahedron over its bounding box; where several claim a voxel the one with
-    the largest centroid k (nearest the viewer) wins. Returns ``(labels, overlap_voxels, inverted)`` where
-    ``inverted`` is a bool per tet, True where the deformed tet has non-positive volume in grid index space.
+    the largest centroid k (nearest the viewer) wins. Returns ``(labels, overlap_voxels)``: voxels strictly
+    inside two or more tetrahedra count as overlap (a wall layer over another).
     """
     nk, nj, ni = grid.shape_kji
     q = grid.lps_to_index(deformed)  # (N,3) continuous (i, j, k)
@@ -139,7 +139,7 @@ def label_map(grid: UnfoldedGrid, deformed: np.ndarray, tets: np.ndarray, chunk_
         if progress is not None and total:
             progress(0.8 * float(csum[end - 1]) / total)
     overlap = int((strict > 1).sum())
-    return labels.reshape(nk, nj, ni), overlap, vol <= 0
+    return labels.reshape(nk, nj, ni), overlap
 
 
 def build_unfolded_volume(ct: Volume, rest: np.ndarray, deformed: np.ndarray, hexes: np.ndarray,
@@ -152,7 +152,7 @@ def build_unfolded_volume(ct: Volume, rest: np.ndarray, deformed: np.ndarray, he
         raise InputError(f"the unfolded volume would have {nvox:,} voxels (shape {grid.shape_kji}); use a larger "
                          "--output-spacing-mm")
     tets, _ = hex_to_tets(hexes)
-    labels, overlap, inverted = label_map(grid, deformed, tets, progress=progress)
+    labels, overlap = label_map(grid, deformed, tets, progress=progress)
     out = np.full(grid.shape_kji, background, np.float32)
     kk, jj, ii = np.nonzero(labels >= 0)
     tid = labels[kk, jj, ii]

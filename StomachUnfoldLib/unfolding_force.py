@@ -49,8 +49,8 @@ def unfolded_plane(incision_lps, inner_vertices_lps, centerline_lps=None) -> tup
 
     ``n = (u_{J/2} - x) / |u_{J/2} - x|`` with x the foot of the perpendicular from the middle incision
     point on the chord u_1 u_J; ``b`` is the inner-surface vertex furthest along n. When the incision is
-    nearly straight (the foot lies within 1 mm of u_{J/2}) n falls back on the direction from the middle
-    centreline point to u_{J/2}.
+    nearly straight (the foot lies closer to u_{J/2} than half the local radius, so its direction is set by
+    noise) n falls back on the direction from the nearest centreline point to u_{J/2}.
     """
     u = np.asarray(incision_lps, float)
     mid = u[len(u) // 2]
@@ -59,10 +59,12 @@ def unfolded_plane(incision_lps, inner_vertices_lps, centerline_lps=None) -> tup
     t = np.clip(np.dot(mid - a, chord) / max(np.dot(chord, chord), 1e-12), 0.0, 1.0)
     x = a + t * chord
     n = mid - x
-    if np.linalg.norm(n) < 1.0 and centerline_lps is not None:
+    if centerline_lps is not None:
         cl = np.asarray(centerline_lps, float)
         k = int(np.argmin(np.linalg.norm(cl - mid, axis=1)))
-        n = mid - cl[k]
+        radial = mid - cl[k]
+        if np.linalg.norm(n) < max(1.0, 0.5 * np.linalg.norm(radial)):
+            n = radial
     n = _unit(n)
     r = np.asarray(inner_vertices_lps, float)
     b = r[int(np.argmax(r @ n))]
@@ -107,12 +109,15 @@ def stomach_radius(vertices_lps, incision_lps, centerline_lps):
     return eps, j, k
 
 
-def destination_points(vertices_lps, incision_lps, centerline_lps, n, b, p, v2, depth=None):
+def destination_points(vertices_lps, incision_lps, centerline_lps, n, b, p, v2, depth=None, side_vectors=None):
     """Destination g (LPS mm) per incision vertex (Eq. 8): pi*epsilon from the base line on the vertex's side.
 
     Returns ``(g, eps, side)``; side is +1 or -1 (toward +v2 or -v2). Each destination is lowered below
     the plane by the vertex's depth in the wall (mm; ``depth`` if given, else its radial distance from the
     centreline minus epsilon), so the mucosa lies on the plane and the wall keeps its thickness.
+    ``side_vectors`` (I',3), if given, replace ``r - c`` in the side test of Eq. 8: for a vertex on a cut
+    face, the direction from the removed cell to the kept one says its side even when the vertex lies
+    on the cut plane itself.
     """
     r = np.asarray(vertices_lps, float)
     u = np.asarray(incision_lps, float)
@@ -122,7 +127,8 @@ def destination_points(vertices_lps, incision_lps, centerline_lps, n, b, p, v2, 
     jp = np.minimum(j + 1, len(u) - 1)
     tangent = u[jp] - u[jm]
     # the vertex lies on the +v2 side when ((r - c) x (u - c)) . t >= 0 (see the module docstring)
-    s = np.einsum("ij,ij->i", np.cross(r - c[k], u[j] - c[k]), tangent)
+    a = r - c[k] if side_vectors is None else np.asarray(side_vectors, float)
+    s = np.einsum("ij,ij->i", np.cross(a, u[j] - c[k]), tangent)
     side = np.where(s >= 0, 1.0, -1.0)
     g = p[j] + (np.pi * eps * side)[:, None] * np.asarray(v2, float)[None, :]
     if depth is None:
@@ -167,7 +173,13 @@ def unfolding_targets(model, incision, centerline, depth=None, arc: str = "3d") 
         eps_all, _, k_all = stomach_radius(model.vertices, u, c)
         depth = np.linalg.norm(model.vertices - c[k_all], axis=1) - eps_all
     depth = np.asarray(depth, float)
-    g, eps, side = destination_points(model.vertices[ids], u, c, n, b, p, v2, depth=depth[ids])
+    sv = getattr(model, "cut_normal", None)
+    sv = None if sv is None else sv[ids]
+    if sv is not None:
+        # vertices whose cut faces point both ways (a sliver between two cuts) fall back on r - c
+        weak = np.linalg.norm(sv, axis=1) < 1e-6
+        sv[weak] = (model.vertices[ids] - c[stomach_radius(model.vertices[ids], u, c)[2]])[weak]
+    g, eps, side = destination_points(model.vertices[ids], u, c, n, b, p, v2, depth=depth[ids], side_vectors=sv)
     return UnfoldingTargets(n=n, b=b, v1=v1, v2=v2, base_line=p, vertex_ids=ids, destinations=g,
                             epsilon=eps, side=side, heights=-depth)
 

@@ -51,6 +51,7 @@ class WallModel:
     inner: np.ndarray           # (N,) bool, S_vi
     outer: np.ndarray           # (N,) bool, S_vo
     boundary: np.ndarray        # (N,) bool, S_vb (incision faces)
+    cut_normal: np.ndarray      # (N,3) LPS: sum over a vertex's incision faces of (kept cell - cut cell) centres
     steps: tuple                # (d, d, d_hat) voxels per cell along i, j, k
     grid_origin_ijk: np.ndarray # continuous CT index of grid vertex (0,0,0)
     removed_incision: int = 0   # cells removed by the incision
@@ -215,6 +216,8 @@ def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int
     inner = np.zeros(len(vertices), bool)
     outer = np.zeros(len(vertices), bool)
     boundary = np.zeros(len(vertices), bool)
+    cut_normal = np.zeros((len(vertices), 3))
+    axes_lps = volume.direction * (volume.spacing * step_arr)[None, :]  # LPS vector of one cell step along i, j, k
     shape_c = np.array(ncells)
     for off, local in _FACES:
         nb = cells + np.array(off[::-1])  # neighbour in (k, j, i)
@@ -227,13 +230,17 @@ def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int
         vids = hexes[:, list(local)]
         inner[vids[nb_lumen].ravel()] = True
         boundary[vids[nb_cut].ravel()] = True
+        # from the removed cell toward the kept one: which side of the cut this face is on
+        step_lps = -(axes_lps @ np.array(off, float))
+        for c in range(4):
+            np.add.at(cut_normal, vids[nb_cut][:, c], step_lps)
         outer[vids[free & ~nb_lumen & ~nb_cut].ravel()] = True
     inner |= boundary
     outer |= boundary
 
     return WallModel(vertices=vertices, hexes=hexes, cells_ijk=cells_ijk, springs=springs,
                      spring_kind=spring_kind, rest_length=rest_length, mass=mass, inner=inner, outer=outer,
-                     boundary=boundary, steps=steps, grid_origin_ijk=grid_origin,
+                     boundary=boundary, cut_normal=cut_normal, steps=steps, grid_origin_ijk=grid_origin,
                      removed_incision=removed_incision, removed_openings=removed_open,
                      removed_fragments=removed_frag)
 
