@@ -42,15 +42,20 @@ def overlap_fraction(unfolded: Volume, threshold_hu: float = -400.0, min_gap_mm:
 
 
 def visible_markers(unfolded: Volume, marker_hu: float = 200.0, threshold_hu: float = -400.0,
-                    min_area_mm2: float = 2.0):
+                    min_area_mm2: float = 2.0, merge_mm: float = 2.0):
     """Markers seen from the viewer: connected regions of the first-hit image with HU above marker_hu.
+
+    Pieces of one marker split by a crease narrower than ``merge_mm`` count as one region.
 
     Returns a list of dicts with the region's centre in the unfolded volume's LPS frame (mm, at the hit
     depth), its (i, j) index centre and area in mm^2.
     """
     k, hu = first_hit(unfolded, threshold_hu)
     dense = np.nan_to_num(hu, nan=-2000.0) > marker_hu
-    lab, n = ndimage.label(dense, structure=np.ones((3, 3), bool))
+    r = max(1, int(round(0.5 * merge_mm / float(min(unfolded.spacing[:2])))))
+    joined = ndimage.binary_dilation(dense, structure=np.ones((2 * r + 1, 2 * r + 1), bool))
+    lab, n = ndimage.label(joined, structure=np.ones((3, 3), bool))
+    lab = np.where(dense, lab, 0)
     out = []
     px = float(unfolded.spacing[0] * unfolded.spacing[1])
     for idx, sl in enumerate(ndimage.find_objects(lab), start=1):
