@@ -138,3 +138,30 @@ def test_cancel_from_progress_leaves_nothing(tmp_path):
     with pytest.raises(Cancelled):
         unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], TINY, progress=cb)
     assert "air region" in stages and stages[-1] == "simulation"
+
+
+def test_mask_replaces_air_for_a_fluid_filled_stomach(tmp_path):
+    """A stomach full of fluid (no gas): the label gives the lumen, the fluid is cleared, markers show."""
+    from StomachUnfoldLib.errors import AnatomyError
+
+    ct, truth = make_phantom("j", "tiny", noise_hu=0.0)
+    lumen = ct.array < -500
+    lumen &= ~((ct.array < -500) & (np.indices(ct.array.shape)[0] > ct.array.shape[0] - 20))  # no lung
+    from scipy import ndimage
+    lab, _ = ndimage.label(ct.array < -500)
+    c_ijk = np.rint(ct.lps_to_index(np.array([truth["cardia_lps"]]))[0]).astype(int)
+    lumen = lab == lab[c_ijk[2], c_ijk[1], c_ijk[0]]
+    fluid = ct.with_array(np.where(lumen, 15, ct.array).astype(np.int16))
+    with pytest.raises(AnatomyError, match="--mask"):
+        unfold(fluid, truth["cardia_lps"], truth["pylorus_lps"], TINY)
+    res = unfold(fluid, truth["cardia_lps"], truth["pylorus_lps"], TINY, mask=lumen)
+    assert len(visible_markers(res.unfolded)) == len(truth["markers"])
+    assert overlap_fraction(res.unfolded) < 0.005
+
+
+def test_phantom_command(tmp_path):
+    assert main(["phantom", str(tmp_path / "p.nii.gz"), "--shape", "bent", "--size", "tiny", "--flip"]) == 0
+    v = suio.read_volume(str(tmp_path / "p.nii.gz"))
+    assert np.linalg.det(v.direction) < 0
+    truth = json.load(open(tmp_path / "p.json"))
+    assert len(truth["markers"]) == 12 and (tmp_path / "p.mrk.json").exists()
