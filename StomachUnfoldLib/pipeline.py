@@ -56,6 +56,7 @@ class UnfoldParameters:
     max_snap_mm: float = 20.0           # how far a point may lie from the lumen
     centerline_step_mm: float = 2.0
     clear_lumen: bool = True            # with a mask: show the lumen contents as air in the unfolded volume
+    swap_check: bool = True             # exchange the points when the "cardia" lies well below the "pylorus"
 
     def validate(self) -> None:
         """Raise InputError naming the first parameter out of range."""
@@ -158,6 +159,58 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
+def available_memory_bytes() -> int:
+    """Memory this process may still use (bytes): MemAvailable from /proc/meminfo, else physical memory."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+def estimate_memory_bytes(ct: Volume) -> int:
+    """Rough peak extra memory (bytes) of a run on this CT: masks and labels over the whole grid, before cropping."""
+    return int(ct.array.size * 6)
+
+
+def check_volume(ct: Volume) -> list[str]:
+    """Refuse volumes that cannot be a CT in HU (InputError saying why); return warnings for odd but usable ones."""
+    a = ct.array
+    warnings = []
+    if a.dtype.kind not in "iuf":
+        raise InputError(f"the CT must hold numbers (HU), got dtype {a.dtype}")
+    if min(a.shape) < 8:
+        raise InputError(f"the volume is only {ct.size} voxels (i, j, k); an abdominal CT with at least 8 voxels "
+                         "along each axis is needed")
+    extent = np.array(ct.size) * ct.spacing
+    if extent.min() < 20.0:
+        raise InputError(f"the volume covers only {np.round(extent, 1).tolist()} mm; it cannot hold a stomach")
+    need = estimate_memory_bytes(ct)
+    avail = available_memory_bytes()
+    if need > 0.8 * avail:
+        raise InputError(f"this volume ({ct.size} voxels) needs about {need / 2**30:.1f} GiB of working memory and "
+                         f"only {avail / 2**30:.1f} GiB is free; crop the CT to the upper abdomen first")
+    if a.dtype.kind == "f":
+        finite = np.isfinite(a)
+        if not finite.all():
+            frac = 1.0 - finite.mean()
+            raise InputError(f"{100 * frac:.1f}% of the voxels are NaN or infinite; give a CT with finite HU values")
+    lo, hi = float(a.min()), float(a.max())
+    if hi - lo < 1e-6:
+        raise InputError(f"the volume is constant ({lo:g}); give a CT volume")
+    if lo > -300.0 or hi - lo < 500.0:
+        raise InputError(f"the values range from {lo:g} to {hi:g}, which is not a CT in Hounsfield units (air is "
+                         "about -1000 HU, soft tissue 0 to 100 HU); give a CT, or rescale it to HU")
+    ratio = float(ct.spacing.max() / ct.spacing.min())
+    if ratio > 5.0:
+        warnings.append(f"the voxels are {ratio:.1f} times longer along one axis ({np.round(ct.spacing, 2).tolist()} "
+                        "mm); the wall model follows the coarse axis and the view will be coarse along it")
+    return warnings
+
+
 def _check_points(ct: Volume, cardia_lps, pylorus_lps):
     pts = []
     for name, p in (("cardia", cardia_lps), ("pylorus", pylorus_lps)):
@@ -203,9 +256,13 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     seconds: dict[str, float] = {}
     warnings: list[str] = []
     t_all = time.perf_counter()
-    if ct.array.dtype.kind not in "iuf":
-        raise InputError(f"the CT must hold numbers (HU), got dtype {ct.array.dtype}")
+    warnings += check_volume(ct)
     cardia_lps, pylorus_lps = _check_points(ct, cardia_lps, pylorus_lps)
+    if params.swap_check and pylorus_lps[2] > cardia_lps[2] + 20.0:
+        # the cardia lies superior to the pylorus in every stomach orientation seen on supine CT
+        cardia_lps, pylorus_lps = pylorus_lps, cardia_lps
+        warnings.append("the cardia point lay 20 mm or more below the pylorus point: the two points were probably "
+                        "swapped and have been exchanged (set swap_check=False to keep them as given)")
 
     # --- air region / lumen -------------------------------------------------------------------
     t = time.perf_counter()
@@ -243,6 +300,10 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     cl = compute_centerline(lumen_c, crop, cardia_lps, pylorus_lps, step_mm=params.centerline_step_mm,
                             max_snap_mm=params.max_snap_mm, progress=stage["centreline"])
     seconds["centreline"] = time.perf_counter() - t
+    if cl.length_mm < 1.5 * float(np.median(cl.radius_mm)):
+        raise PointError(f"the cardia and pylorus are only {cl.length_mm:.0f} mm apart along the lumen, less than the "
+                         f"stomach's width ({2 * np.median(cl.radius_mm):.0f} mm): both lie in the same part of the "
+                         "stomach; place the cardia at the oesophageal end and the pylorus at the duodenal end")
     if float(np.min(cl.radius_mm)) < 1.5 * float(cell_mm[:2].max()) / 2:
         warnings.append(f"the lumen is as narrow as {np.min(cl.radius_mm):.1f} mm radius, close to the cell size "
                         f"{cell_mm.max():.1f} mm; a smaller --grid-size gives a finer model")

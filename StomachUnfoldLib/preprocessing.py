@@ -281,7 +281,7 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
 
 def lumen_from_mask(mask: np.ndarray, ct: Volume, cardia_lps, pylorus_lps,
                     max_snap_mm: float = 20.0) -> tuple[np.ndarray, dict]:
-    """Lumen from a stomach label (bool on ct's grid): the 6-connected component(s) reached by the two points.
+    """Lumen from a stomach label (bool on ct's grid): its 6-connected component(s) reached by the two LPS points (mm).
 
     Used in place of :func:`air_region` when the stomach holds no gas. Returns ``(mask, info)`` with the
     same info keys as :func:`air_region` (volume in mL, seeds in LPS mm).

@@ -1,0 +1,140 @@
+"""Bad input and faults: clear documented errors, nothing modified, nothing half-written, cancel anywhere."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from StomachUnfoldLib.errors import (AnatomyError, Cancelled, InputError, PointError, SimulationError,
+                                     StomachUnfoldError)
+from StomachUnfoldLib.geometry import Volume
+from StomachUnfoldLib.phantom import make_phantom, write_phantom
+from StomachUnfoldLib.pipeline import STAGES, UnfoldParameters, unfold
+
+TINY = UnfoldParameters(grid_size=3, wall_thickness_mm=4.0)
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return make_phantom("j", "tiny")
+
+
+def _pts(truth):
+    return np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"])
+
+
+@pytest.mark.parametrize("make,err,text", [
+    (lambda ct: ct.with_array(np.zeros_like(ct.array)), InputError, "constant"),
+    (lambda ct: Volume(np.where(ct.array > 0, np.nan, ct.array).astype(np.float32), ct.spacing, ct.origin,
+                       ct.direction), InputError, "NaN"),
+    (lambda ct: ct.with_array(((ct.array + 1024) / 4096.0).astype(np.float32)), InputError, "Hounsfield"),
+    (lambda ct: Volume(ct.array[:6, :6, :6], ct.spacing, ct.origin, ct.direction), InputError, "at least 8"),
+    ("fluid", AnatomyError, "--mask"),
+])
+def test_bad_volumes(phantom, make, err, text):
+    ct, truth = phantom
+    if make == "fluid":  # a stomach without gas: its lumen filled with fluid, lungs and colon keep their air
+        from scipy import ndimage
+        lab, _ = ndimage.label(ct.array < -500)
+        ijk = np.rint(ct.lps_to_index(np.array([truth["cardia_lps"]]))[0]).astype(int)
+        stomach = lab == lab[ijk[2], ijk[1], ijk[0]]
+        make = lambda ct: ct.with_array(np.where(stomach, 15, ct.array).astype(np.int16))  # noqa: E731
+    with pytest.raises(err, match=text):
+        unfold(make(ct), *_pts(truth), TINY)
+
+
+def test_bad_points(phantom):
+    ct, truth = phantom
+    c, p = _pts(truth)
+    with pytest.raises(PointError, match="outside the volume"):
+        unfold(ct, c + np.array([0, 0, 500.0]), p, TINY)
+    with pytest.raises(PointError, match="apart"):
+        unfold(ct, c, c, TINY)
+    with pytest.raises(PointError, match="same part of the stomach"):
+        unfold(ct, c, c + np.array([0, 0, -25.0]), TINY)
+    # a point in the body wall (soft tissue, no gas within 20 mm)
+    body = np.array([truth["cardia_lps"][0] + 80.0, truth["cardia_lps"][1], truth["cardia_lps"][2] - 60])
+    if ct.contains_lps(body[None])[0]:
+        with pytest.raises((AnatomyError, PointError)):
+            unfold(ct, body, p, TINY)
+
+
+def test_swapped_points_are_detected_and_exchanged(phantom):
+    ct, truth = phantom
+    c, p = _pts(truth)
+    res = unfold(ct, p, c, TINY)
+    assert any("swapped" in w for w in res.report["warnings"])
+    assert np.allclose(res.report["points"]["cardia_lps"], c)
+
+
+def test_no_convergence_returns_last_state_with_warning(phantom):
+    ct, truth = phantom
+    res = unfold(ct, *_pts(truth), UnfoldParameters(grid_size=3, max_iterations=2, min_iterations=1))
+    assert res.report["iterations"] == 2 and not res.report["simulation"]["converged"]
+    assert any("no convergence" in w for w in res.report["warnings"])
+
+
+def test_divergence_is_reported_not_crashed(phantom):
+    ct, truth = phantom
+    with pytest.raises(SimulationError, match="diverged"):
+        unfold(ct, *_pts(truth), UnfoldParameters(grid_size=3, beta=1e-4, time_step=100.0))
+
+
+@pytest.mark.parametrize("stage", [name for name, _, _ in STAGES])
+def test_cancel_at_every_stage(phantom, stage):
+    ct, truth = phantom
+    before = ct.array.copy()
+    seen = []
+
+    def cb(name, fraction):
+        seen.append(name)
+        return name != stage
+
+    with pytest.raises(Cancelled):
+        unfold(ct, *_pts(truth), TINY, progress=cb)
+    assert seen[-1] == stage
+    assert np.array_equal(ct.array, before)
+
+
+def test_ctrl_c_on_the_command_line_leaves_no_output(tmp_path):
+    path, _ = write_phantom(str(tmp_path / "ph.nrrd"), shape="j", size="small")
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "StomachUnfoldLib.cli", "unfold", path, "--points",
+                             str(tmp_path / "ph.mrk.json"), "-o", str(out), "--grid-mm", "3"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 60
+    # wait until the run is under way (it has created nothing yet), then interrupt it
+    time.sleep(3.0)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=max(1, deadline - time.time()))
+    assert proc.returncode in (130, -signal.SIGINT), stderr
+    if proc.returncode == 130:
+        assert "cancelled" in stderr
+    assert not (out / "unfolded.nrrd").exists() and not (out / "report.json").exists()
+    if out.exists():
+        assert [n for n in os.listdir(out) if not n.startswith(".")] == []
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                                                 HealthCheck.too_slow])
+@given(dc=st.tuples(*[st.floats(-25, 25)] * 3), dp=st.tuples(*[st.floats(-25, 25)] * 3),
+       d=st.integers(2, 6), kappa=st.floats(0.05, 3.0), h=st.floats(0.1, 5.0),
+       side=st.sampled_from(["greater", "lesser", "anterior", "posterior"]))
+def test_property_succeeds_with_valid_report_or_fails_with_a_documented_error(phantom, dc, dp, d, kappa, h, side):
+    ct, truth = phantom
+    c, p = _pts(truth)
+    params = UnfoldParameters(grid_size=d, kappa=kappa, time_step=h, incision=side, wall_thickness_mm=4.0)
+    try:
+        res = unfold(ct, c + np.array(dc), p + np.array(dp), params)
+    except StomachUnfoldError as e:
+        assert str(e) and type(e) is not StomachUnfoldError
+        return
+    r = res.report
+    assert r["iterations"] >= 1 and len(r["D_trace"]) == r["iterations"] + 1
+    assert np.all(np.isfinite(res.deformed_vertices))
+    assert res.unfolded.array.dtype == np.int16 and (res.unfolded.array > -1024).any()
