@@ -28,7 +28,8 @@ __all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES"]
 #: Stage names and their share of the progress bar.
 STAGES = [("air region", 0.0, 0.08), ("wall region", 0.08, 0.12), ("centreline", 0.12, 0.2),
           ("incision line", 0.2, 0.24), ("wall model", 0.24, 0.3), ("unfolding forces", 0.3, 0.32),
-          ("simulation", 0.32, 0.8), ("unfolded volume", 0.8, 0.97), ("correspondence", 0.97, 1.0)]
+          ("simulation", 0.32, 0.78), ("unfolded volume", 0.78, 0.92), ("correspondence", 0.92, 0.93),
+          ("quality", 0.93, 1.0)]
 
 
 @dataclass
@@ -57,6 +58,7 @@ class UnfoldParameters:
     centerline_step_mm: float = 2.0
     clear_lumen: bool = True            # with a mask: show the lumen contents as air in the unfolded volume
     swap_check: bool = True             # exchange the points when the "cardia" lies well below the "pylorus"
+    quality: bool = True                # compute the automatic quality metrics and grade into the report
 
     def validate(self) -> None:
         """Raise InputError naming the first parameter out of range."""
@@ -104,6 +106,7 @@ class UnfoldResult:
     hexes: np.ndarray
     correspondence: object
     lumen_crop: Volume | None = field(default=None, repr=False)
+    inner_vertices: np.ndarray | None = field(default=None, repr=False)
 
     def write(self, out_dir, landmarks_lps: dict | None = None) -> dict:
         """Write the output files into ``out_dir`` all together or not at all; returns {name: path}."""
@@ -360,7 +363,6 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     corr = Correspondence(model.vertices, sim.positions, model.hexes)
     seconds["correspondence"] = time.perf_counter() - t
     stage["correspondence"](1.0)
-    seconds["total"] = time.perf_counter() - t_all
 
     report = {
         "software": {"name": "StomachUnfoldLib", "version": __version__},
@@ -390,10 +392,20 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
         "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "warnings": warnings,
     }
-    return UnfoldResult(unfolded=unfolded, report=report, centerline_lps=np.asarray(cl.points_lps),
-                        incision_lps=np.asarray(inc.points_lps), rest_vertices=model.vertices,
-                        deformed_vertices=sim.positions, hexes=model.hexes, correspondence=corr,
-                        lumen_crop=crop.with_array(lumen_c))
+    result = UnfoldResult(unfolded=unfolded, report=report, centerline_lps=np.asarray(cl.points_lps),
+                          incision_lps=np.asarray(inc.points_lps), rest_vertices=model.vertices,
+                          deformed_vertices=sim.positions, hexes=model.hexes, correspondence=corr,
+                          lumen_crop=crop.with_array(lumen_c), inner_vertices=model.inner)
+    if params.quality:
+        from .quality import quality_metrics
+
+        t = time.perf_counter()
+        stage["quality"](0.0)
+        report["quality"] = quality_metrics(result)
+        seconds["quality"] = time.perf_counter() - t
+        stage["quality"](1.0)
+    seconds["total"] = time.perf_counter() - t_all
+    return result
 
 
 def parameter_names() -> list[str]:

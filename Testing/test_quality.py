@@ -1,0 +1,55 @@
+"""Automatic quality metrics and grade."""
+import numpy as np
+import pytest
+
+from StomachUnfoldLib.geometry import Volume
+from StomachUnfoldLib.phantom import make_phantom
+from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
+from StomachUnfoldLib.quality import GRADE_THRESHOLDS, layer_runs, surface_distortion
+
+
+def test_surface_distortion_known_maps():
+    rng = np.random.default_rng(0)
+    rest = rng.normal(size=(30, 3)) * 10
+    tris = np.array([[i, i + 1, i + 2] for i in range(0, 27, 3)])
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    same = surface_distortion(rest, rest @ R.T + 5.0, tris)  # rigid motion: no distortion
+    assert same["area_distortion"] < 1e-9 and same["angle_distortion"] < 1e-9
+    scaled = surface_distortion(rest, 2.0 * rest, tris)  # uniform scale: area x4, angles kept
+    assert np.isclose(scaled["area_distortion"], np.log(4.0)) and scaled["angle_distortion"] < 1e-9
+    sheared = surface_distortion(rest, rest * np.array([3.0, 1.0, 1.0]), tris)
+    assert sheared["angle_distortion"] > 0.1
+
+
+def test_layer_runs_counts_separate_layers():
+    a = np.full((20, 2, 2), -1000, np.int16)
+    a[2:5] = 40
+    a[10:14, 0, 0] = 40  # a second layer over one column
+    runs = layer_runs(Volume(a, [1.0, 1.0, 1.0]))
+    assert runs[0, 0] == 2 and runs[1, 1] == 1
+
+
+@pytest.fixture(scope="module")
+def j_phantom():
+    return make_phantom("j", "tiny")
+
+
+def test_grade_and_metrics_of_default_and_paper_forces(j_phantom):
+    ct, truth = j_phantom
+    markers = {m["id"]: m["lps"] for m in truth["markers"]}
+    ours = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], UnfoldParameters(grid_size=3, wall_thickness_mm=4.0))
+    q = ours.report["quality"]
+    assert q["grade"] in ("excellent", "good")
+    assert q["visible_fraction"] > 0.85 and q["failure_parts"] <= 1
+    from StomachUnfoldLib.quality import quality_metrics
+    mq = quality_metrics(ours, markers)["markers"]
+    assert mq["seen"] == 12 and 0.7 < mq["pairwise_distance_ratio_median"] < 1.4
+    # the paper's forces alone (no guided destinations, no flattening, weak pull) bend and fold the wall
+    paper = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"],
+                   UnfoldParameters(grid_size=3, wall_thickness_mm=4.0, ramp_iterations=0, flattening_stiffness=0.0,
+                                    unfolding_stiffness=0.5)).report["quality"]
+    assert paper["visible_fraction"] < q["visible_fraction"] - 0.1
+    assert paper["bending_plane_rms_mm"] > 3 * q["bending_plane_rms_mm"]
+    order = ["excellent", "good", "fair", "bad"]
+    assert order.index(paper["grade"]) > order.index(q["grade"])
+    assert set(GRADE_THRESHOLDS) == {"excellent", "good", "fair"}
