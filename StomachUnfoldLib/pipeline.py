@@ -357,10 +357,13 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
                                                background=-1024.0, clear_mask=clear,
                                                progress=stage["unfolded volume"])
     seconds["unfolded volume"] = time.perf_counter() - t
+    if info_vol.get("outside_ct_voxels", 0) > 0:
+        warnings.append(f"{info_vol['outside_ct_voxels']} voxels of the unfolded volume map outside the CT crop; "
+                        "they show the background")
 
     t = time.perf_counter()
     stage["correspondence"](0.0)
-    corr = Correspondence(model.vertices, sim.positions, model.hexes)
+    corr = Correspondence(model.vertices, sim.positions, model.hexes, view_axis=grid.axes[:, 2])
     seconds["correspondence"] = time.perf_counter() - t
     stage["correspondence"](1.0)
 
