@@ -111,7 +111,11 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="run the benchmark and write tables and PNGs")
     b.add_argument("--output-dir", "-o", default="docs/benchmark")
     b.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
-    b.add_argument("--full-size", action="store_true", help="include the 512x512x400 phantom timing")
+    b.add_argument("--full-size", action="store_true", help="include the 512x512x400 phantom timing and scaling")
+    b.add_argument("--scheduler", default=None, help="Dask scheduler address (default: a local cluster)")
+    b.add_argument("--parts", default="shapes,kappa,sweep,stability,resolution,peers,real,scaling",
+                   help="comma-separated parts to run")
+    b.add_argument("--data-dir", default=None, help="folder of the real CTs (default ../shared/data)")
     return ap
 
 
@@ -191,7 +195,10 @@ def _cmd_phantom(args) -> int:
 def _cmd_bench(args) -> int:
     from .bench import run_benchmark
 
-    run_benchmark(args.output_dir, quick=args.quick, full_size=args.full_size)
+    rows = run_benchmark(args.output_dir, quick=args.quick, full_size=args.full_size, scheduler=args.scheduler,
+                         data_dir=args.data_dir, parts=tuple(p.strip() for p in args.parts.split(",") if p.strip()))
+    failed = sum(not r.get("ok") for r in rows)
+    print(f"bench: {len(rows)} cases, {failed} failed (as data), results in {args.output_dir}/results.md")
     return 0
 
 

@@ -47,6 +47,7 @@ class NewmarkParameters:
     min_iterations: int = 5
     inner_iterations: int = 2      # local/global sweeps per step
     max_retries: int = 4           # step halvings on divergence
+    integrator: str = "newmark"    # "newmark" (implicit) or "explicit" (semi-implicit Euler, for comparison)
 
     def validate(self) -> None:
         """Raise InputError if a constant is out of its valid range."""
@@ -62,6 +63,8 @@ class NewmarkParameters:
                 raise InputError(f"{name} must be zero or positive, got {getattr(self, name)}")
         if self.max_iterations < 1 or self.inner_iterations < 1:
             raise InputError("max_iterations and inner_iterations must be at least 1")
+        if self.integrator not in ("newmark", "explicit"):
+            raise InputError(f"integrator must be 'newmark' or 'explicit', got {self.integrator!r}")
 
 
 @dataclass
@@ -129,9 +132,12 @@ class NewmarkBeta:
         self.set_time_step(params.time_step)
 
     def set_time_step(self, h: float) -> None:
-        """(Re)factorise the constant Newmark matrices for time step h."""
+        """(Re)factorise the constant Newmark matrices for time step h (nothing to factorise when explicit)."""
         b, g = self.p.beta, self.p.gamma
         self.h = float(h)
+        if self.p.integrator == "explicit":
+            self.lu = []
+            return
         base = self.M / (b * h * h) + (g / (b * h)) * self.C + self.Lk
         self.lu = []
         for a in range(3):
@@ -142,8 +148,18 @@ class NewmarkBeta:
             else:
                 self.lu.append(splu(sparse.csc_matrix(base + sparse.diags(self.stiff[a]))))
 
+    def step_explicit(self, x, v, a, f_target):
+        """One semi-implicit (symplectic) Euler step with the same forces; conditionally stable, for comparison."""
+        f = (-(self.Lk @ x) + spring_rotation_forces(x, self.springs, self.kL) - self.stiff.T * x + f_target
+             - self.C @ v)
+        a1 = f / self.mass[:, None]
+        v1 = v + self.h * a1
+        return x + self.h * v1, v1, a1
+
     def step(self, x, v, a, f_target):
         """Advance one Newmark-beta step from (x, v, a) under target forces ``stiff * target``; returns (x1, v1, a1)."""
+        if self.p.integrator == "explicit":
+            return self.step_explicit(x, v, a, f_target)
         b, g, h = self.p.beta, self.p.gamma, self.h
         x_pred = x + h * v + h * h * (0.5 - b) * a
         v_pred = v + h * (1.0 - g) * a

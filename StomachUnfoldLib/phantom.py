@@ -72,8 +72,12 @@ def _greater_curvature_dirs(pts, tangents):
 
 def make_phantom(shape: str = "j", size: str = "small", spacing=None, wall_thickness_mm: float = 4.0,
                  rugae: bool = False, noise_hu: float = 15.0, n_markers: int = 12, seed: int = 0,
-                 flip_direction: bool = False):
-    """Synthetic CT (int16 HU Volume, LPS) of a gas-distended stomach with markers, and its truth dict (LPS/RAS mm)."""
+                 flip_direction: bool = False, radius_scale: float = 1.0, full_slices: int = 400):
+    """Synthetic CT (int16 HU Volume, LPS) of a gas-distended stomach with markers, and its truth dict (LPS/RAS mm).
+
+    ``radius_scale`` scales the lumen radius profile; ``full_slices`` sets the slice count of the "full" size
+    (512 x 512 x full_slices at 0.7 mm).
+    """
     if size not in SIZES:
         raise InputError(f"unknown phantom size {size!r}; choose one of {', '.join(SIZES)}")
     if shape == "thin_wall":
@@ -81,6 +85,7 @@ def make_phantom(shape: str = "j", size: str = "small", spacing=None, wall_thick
     sp = np.broadcast_to(np.asarray(SIZES[size] if spacing is None else spacing, float), (3,)).astype(float)
     rng = np.random.default_rng(seed)
     cl, radius = stomach_centerline(shape)
+    radius = radius * float(radius_scale)
     tan = _tangents(cl)
     gdir = _greater_curvature_dirs(cl, tan)
     seg = np.linalg.norm(np.diff(cl, axis=0), axis=1)
@@ -93,8 +98,8 @@ def make_phantom(shape: str = "j", size: str = "small", spacing=None, wall_thick
     if size == "full":
         # the clinical field of view: 358.4 x 358.4 x 280 mm (512 x 512 x 400 voxels at 0.7 mm)
         centre_z = 0.5 * (lo[2] + hi[2])
-        fov_lo = np.array([-179.2, -179.2, centre_z - 140.0])
-        fov_hi = fov_lo + np.array([511 * 0.7, 511 * 0.7, 399 * 0.7])
+        fov_lo = np.array([-179.2, -179.2, centre_z - 0.35 * full_slices])
+        fov_hi = fov_lo + np.array([511 * 0.7, 511 * 0.7, (int(full_slices) - 1) * 0.7])
     else:
         fov_lo = lo - np.array([20.0, 20.0, 34.0])
         fov_hi = hi + np.array([20.0, 20.0, 34.0])

@@ -53,12 +53,15 @@ class UnfoldParameters:
     ramp_iterations: int = 30           # guided destinations and flattening ramp (0: the paper's fixed g)
     max_iterations: int = 300
     min_iterations: int = 5
+    integrator: str = "newmark"         # newmark (implicit) | explicit (semi-implicit Euler, for comparison)
+    max_retries: int = 4                # time-step halvings after a divergence
     output_spacing_mm: float | None = None  # unfolded volume spacing; default the input's in-plane spacing
     max_snap_mm: float = 20.0           # how far a point may lie from the lumen
     centerline_step_mm: float = 2.0
     clear_lumen: bool = True            # with a mask: show the lumen contents as air in the unfolded volume
     swap_check: bool = True             # exchange the points when the "cardia" lies well below the "pylorus"
     quality: bool = True                # compute the automatic quality metrics and grade into the report
+    crop_margin_mm: float = 0.0         # extra margin (mm) around the stomach crop (benchmark of crop size)
 
     def validate(self) -> None:
         """Raise InputError naming the first parameter out of range."""
@@ -72,6 +75,8 @@ class UnfoldParameters:
             raise InputError(f"wall_thickness_mm must be positive, got {self.wall_thickness_mm}")
         if self.output_spacing_mm is not None and not self.output_spacing_mm > 0:
             raise InputError(f"output_spacing_mm must be positive, got {self.output_spacing_mm}")
+        if self.crop_margin_mm < 0:
+            raise InputError(f"crop_margin_mm must not be negative, got {self.crop_margin_mm}")
         if self.flattening_stiffness < 0 or self.ramp_iterations < 0:
             raise InputError("flattening_stiffness and ramp_iterations must not be negative")
 
@@ -83,7 +88,8 @@ class UnfoldParameters:
                                  spring_stiffness=self.spring_stiffness, damping=self.damping,
                                  mass_damping=self.mass_damping, unfolding_stiffness=self.unfolding_stiffness,
                                  kappa=self.kappa, max_iterations=int(self.max_iterations),
-                                 min_iterations=int(self.min_iterations))
+                                 min_iterations=int(self.min_iterations), integrator=self.integrator,
+                                 max_retries=int(self.max_retries))
 
     def grid_voxels(self, spacing) -> int:
         """The in-plane cell size d in voxels for a CT of this spacing (mm)."""
@@ -286,7 +292,7 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     d = params.grid_voxels(ct.spacing)
     steps = grid_steps(ct.spacing, d)
     cell_mm = np.array(steps) * ct.spacing
-    margin_mm = params.wall_thickness_mm + 2.0 * cell_mm.max() + 4.0
+    margin_mm = params.wall_thickness_mm + 2.0 * cell_mm.max() + 4.0 + float(params.crop_margin_mm)
     lo, hi = bounding_box(lumen, tuple(int(np.ceil(margin_mm / s)) for s in ct.spacing))
     crop = ct.crop(lo, hi)
     lumen_c = lumen[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
@@ -296,6 +302,7 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     t = time.perf_counter()
     stage["wall region"](0.0)
     wall = wall_region(lumen_c, crop.spacing, params.wall_thickness_mm)
+    wall_voxels = int(np.count_nonzero(wall))
     seconds["wall region"] = time.perf_counter() - t
 
     # --- centreline ------------------------------------------------------------------------------
@@ -372,7 +379,8 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
         "parameters": asdict(params),
         "input": {"size_ijk": list(ct.size), "spacing_mm": ct.spacing.tolist(), "origin_lps": ct.origin.tolist(),
                   "direction": ct.direction.tolist(), "mask_given": mask is not None,
-                  "crop_lo_ijk": [int(v) for v in lo], "crop_hi_ijk": [int(v) for v in hi]},
+                  "crop_lo_ijk": [int(v) for v in lo], "crop_hi_ijk": [int(v) for v in hi],
+                  "crop_voxels": int(np.prod(np.asarray(hi) - np.asarray(lo)))},
         "points": {"cardia_lps": cardia_lps.tolist(), "pylorus_lps": pylorus_lps.tolist(),
                    "cardia_ras": lps_to_ras(cardia_lps).tolist(), "pylorus_ras": lps_to_ras(pylorus_lps).tolist()},
         "air_region": {k: v for k, v in info_air.items() if k != "warnings"},
@@ -380,7 +388,7 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
                        "radius_mm": {"min": float(np.min(cl.radius_mm)), "median": float(np.median(cl.radius_mm)),
                                      "max": float(np.max(cl.radius_mm))}},
         "incision": {"side": inc.side, "points": int(len(inc.points_lps)), "length_mm": inc.length_mm},
-        "model": {**model.summary(), "grid_size_d": d, "cell_mm": cell_mm.tolist()},
+        "model": {**model.summary(), "grid_size_d": d, "cell_mm": cell_mm.tolist(), "wall_voxels": wall_voxels},
         "unfolding": {"plane_normal_lps": targets.n.tolist(), "plane_point_lps": targets.b.tolist(),
                       "base_line_direction_lps": targets.v1.tolist(), "pulled_vertices": int(len(targets.vertex_ids)),
                       "epsilon_mm": {"min": float(targets.epsilon.min()), "max": float(targets.epsilon.max())}},

@@ -185,6 +185,50 @@ def _side_axes(volume: Volume) -> list[int]:
     return [a for a in range(3) if a != si_arr]
 
 
+def _air_problem(comp: np.ndarray, sides, voxel_ml: float) -> str:
+    """Why an air component cannot be a stomach ('' if it can): touching the body's sides, or too large (mL)."""
+    if _touches_faces(comp, sides):
+        return "is connected to the side of the volume"
+    vol_ml = float(np.count_nonzero(comp)) * voxel_ml
+    if vol_ml > MAX_STOMACH_ML:
+        return f"is {vol_ml:.0f} mL: too large for a stomach (> {MAX_STOMACH_ML:.0f} mL)"
+    return ""
+
+
+def _cut_leaks(comp: np.ndarray, ct: Volume, seeds_kji, sides, voxel_ml: float,
+               necks_mm=(3.0, 5.0, 7.0, 10.0)):
+    """Cut gas that leaks from the stomach into bowel through a narrow neck; (mask, neck radius mm) or (None, None).
+
+    For each neck radius r: the core of the air (voxels at least r mm from its edge) is split into
+    components, the ones nearest the seeds are kept and grown back by r mm inside the air (a morphological
+    opening by reconstruction), so channels narrower than 2 r are cut. The first r whose result is a
+    plausible stomach (not touching the sides, not too large) wins.
+    """
+    lo, hi = bounding_box(comp)
+    sl = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
+    sub = comp[sl]
+    sampling = ct.spacing[::-1]
+    dist = ndimage.distance_transform_edt(sub, sampling=sampling)
+    seeds = np.array([[k - lo[2], j - lo[1], i - lo[0]] for k, j, i in seeds_kji], float)
+    for r in necks_mm:
+        core = dist >= r
+        if not core.any():
+            break
+        lab, _ = ndimage.label(core)
+        cidx = np.argwhere(core)
+        keep = set()
+        for sd in seeds:
+            near = cidx[np.argmin(np.linalg.norm((cidx - sd) * sampling, axis=1))]
+            keep.add(int(lab[tuple(near)]))
+        kept = np.isin(lab, list(keep))
+        grown = sub & (ndimage.distance_transform_edt(~kept, sampling=sampling) <= r + float(max(sampling)))
+        out = np.zeros_like(comp)
+        out[sl] = grown
+        if not _air_problem(out, sides, voxel_ml):
+            return out, r
+    return None, None
+
+
 def _touches_faces(mask: np.ndarray, axes) -> bool:
     """True if ``mask`` has a True voxel on either face of one of the given array axes."""
     for a in axes:
@@ -249,26 +293,31 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     voxel_ml = float(np.prod(ct.spacing)) / 1000.0
     region = None
     n_comp = 0
+    leak_warnings: list[str] = []
     for n_done, (name, s) in enumerate(seeds.items()):
         kji = _voxel(ct, s)
         if region is not None and region[kji]:
             continue
         comp = flood(air, kji, connectivity=1)
-        if _touches_faces(comp, sides):
-            raise AnatomyError(f"the air reached from the {name} point (RAS {_ras_text(pts[name])} mm) is connected "
-                               "to the side of the volume: the point is probably in the air outside the body (or "
-                               "in lung); place it inside the stomach, or pass a stomach label with --mask")
-        vol_ml = float(np.count_nonzero(comp)) * voxel_ml
-        if vol_ml > MAX_STOMACH_ML:
-            raise AnatomyError(f"the air reached from the {name} point (RAS {_ras_text(pts[name])} mm) is "
-                               f"{vol_ml:.0f} mL, too large for a stomach (> {MAX_STOMACH_ML:.0f} mL): the point is "
-                               "probably in outside air or lung, or the gas leaks into the bowel; move the point "
-                               "or pass a stomach label with --mask")
+        problem = _air_problem(comp, sides, voxel_ml)
+        if problem:
+            inside = [_voxel(ct, q) for q in seeds.values() if comp[_voxel(ct, q)]]
+            cut, neck = _cut_leaks(comp, ct, inside, sides, voxel_ml)
+            if cut is None:
+                raise AnatomyError(f"the air reached from the {name} point (RAS {_ras_text(pts[name])} mm) {problem}: "
+                                   "the point is probably in the air outside the body or in lung, or the stomach "
+                                   "gas leaks into the bowel through an opening too wide to cut; move the point "
+                                   "into the stomach, or pass a stomach label with --mask")
+            removed = (np.count_nonzero(comp) - np.count_nonzero(cut)) * voxel_ml
+            leak_warnings.append(f"the stomach gas leaked into neighbouring air ({problem.split(':')[0]}); "
+                                 f"{removed:.0f} mL beyond necks narrower than {2 * neck:g} mm was cut away "
+                                 "(check the air region, or pass a stomach label with --mask)")
+            comp = cut
         region = comp if region is None else (region | comp)
         n_comp += 1
         if progress is not None:
             progress(0.2 + 0.4 * (n_done + 1))
-    warnings = []
+    warnings = list(dict.fromkeys(leak_warnings))
     if n_comp == 2:
         warnings.append("the cardia and pylorus points reach two separate air pockets; their union is used as "
                         "the stomach lumen (check the points, or pass a stomach label with --mask)")

@@ -7,6 +7,8 @@ pylorus) and j bottom to top, as the viewer sees it.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from .geometry import Volume
@@ -91,4 +93,6 @@ def render_view(unfolded: Volume, path: str, threshold_hu: float = -400.0, min_p
     writer.SetFileName(str(path))
     writer.SetInputData(vimg)
     writer.Write()
+    if writer.GetErrorCode() or not os.path.exists(str(path)):
+        raise OSError(f"could not write the view PNG {path}: check that its folder exists and is writable")
     return str(path)

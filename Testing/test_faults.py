@@ -64,6 +64,56 @@ def test_bad_points(phantom):
             unfold(ct, body, p, TINY)
 
 
+def _carve_tube(ct, p, q, radius_mm):
+    """A copy of ct with an air tube (LPS mm end points p, q) carved into it."""
+    a = ct.array.copy()
+    idx = np.indices(a.shape).reshape(3, -1)[::-1].T.astype(float)
+    pts = ct.index_to_lps(idx)
+    t = np.clip(((pts - p) @ (q - p)) / ((q - p) @ (q - p)), 0, 1)
+    a.reshape(-1)[np.linalg.norm(pts - (p + t[:, None] * (q - p)), axis=1) < radius_mm] = -1000
+    return ct.with_array(a)
+
+
+def test_gas_leaking_into_the_colon_is_cut_at_the_neck(phantom):
+    from scipy import ndimage
+
+    ct, truth = phantom
+    c, p = _pts(truth)
+    lab, _ = ndimage.label(ct.array < -500)
+    kji = tuple(np.rint(ct.lps_to_index(p[None])[0]).astype(int)[::-1])
+    stomach = lab == lab[kji]
+    colon = (lab > 0) & ~stomach  # colon and lungs; the pocket nearest the pylorus is the colon below it
+    # the gas pocket nearest the pylorus that is not the stomach: the colon below it
+    S, C = ct.voxel_lps(stomach), ct.voxel_lps(colon)
+    q = C[np.argmin(np.linalg.norm(C - p, axis=1))]
+    leaky = _carve_tube(ct, S[np.argmin(np.linalg.norm(S - q, axis=1))], q, 4.0)
+    before = leaky.array.copy()
+    res = unfold(leaky, c, p, TINY)
+    assert any("leaked" in w and "cut away" in w for w in res.report["warnings"])
+    assert res.report["air_region"]["volume_ml"] < 1.2 * float(stomach.sum()) * np.prod(ct.spacing) / 1000
+    assert res.report["quality"]["grade"] in ("excellent", "good")
+    assert np.array_equal(leaky.array, before)
+
+
+def test_gas_leak_too_wide_to_cut_is_refused_with_the_cause(phantom):
+    ct, truth = phantom
+    c, p = _pts(truth)
+    # a tube as wide as the stomach from the pylorus to the side of the volume: no neck to cut
+    side = p.copy()
+    side[0] = ct.bounds_lps()[1][0] + 5.0
+    with pytest.raises(AnatomyError, match="leaks into the bowel.*--mask"):
+        unfold(_carve_tube(ct, p, side, 24.0), c, p, TINY)
+
+
+def test_huge_volume_is_refused_with_a_memory_figure_before_any_work():
+    from StomachUnfoldLib.pipeline import available_memory_bytes
+
+    n = int(round((available_memory_bytes() / 6) ** (1 / 3) * 1.5))  # needs well over the free memory
+    huge = Volume(np.broadcast_to(np.int16(0), (n, n, n)), [0.7, 0.7, 0.7])  # no memory is allocated
+    with pytest.raises(InputError, match=r"GiB of working memory.*crop the CT"):
+        unfold(huge, [0.0, 0.0, 10.0], [0.0, 0.0, -10.0])
+
+
 def test_swapped_points_are_detected_and_exchanged(phantom):
     ct, truth = phantom
     c, p = _pts(truth)

@@ -1,0 +1,66 @@
+"""The benchmark in miniature: cases run through Dask, failures become rows, tables and charts are written."""
+import json
+import os
+
+import pytest
+
+from StomachUnfoldLib import bench
+
+
+def test_quick_stability_bench_reports_explicit_divergence_as_data(tmp_path):
+    rows = bench.run_benchmark(str(tmp_path), quick=True, parts=("stability",))
+    by = {r["name"]: r for r in rows}
+    # the implicit Newmark-beta step stays stable at every step size tried, the explicit one does not
+    newmark = [r for n, r in by.items() if "/newmark/" in n]
+    explicit = [r for n, r in by.items() if "/explicit/" in n]
+    assert newmark and explicit
+    assert all(r["ok"] for r in newmark), [r.get("error") for r in newmark]
+    big_step = [r for r in explicit if r["name"].endswith("h=10.0")]
+    assert big_step and not big_step[0]["ok"] and "diverged" in big_step[0]["error"]
+    assert any(r["ok"] for r in explicit)  # explicit works at a small enough step
+    # the judged rows carry the metrics the charts need
+    for r in newmark:
+        assert 0.0 <= r["quality"]["visible_fraction"] <= 1.0
+        assert r["markers_total"] == 12
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert len(saved["cases"]) == len(rows) and saved["meta"]["scheduler"] == "LocalCluster"
+    md = (tmp_path / "results.md").read_text()
+    assert "Stability" in md and "failed: SimulationError" in md
+    assert (tmp_path / "stability.png").stat().st_size > 5000
+    for r in rows:
+        if r["ok"]:
+            assert (tmp_path / "views" / bench.png_name(r["name"])).exists()
+
+
+def test_a_broken_case_is_a_row_not_a_crash():
+    row = bench.run_case(bench.Case("nonsense", {"shape": "no-such-shape", "size": "tiny"}))
+    assert row["ok"] is False and "InputError" in row["error"] and "no-such-shape" in row["error"]
+    row = bench.run_case(bench.Case("bad-param", {"shape": "straight", "size": "tiny"}, {"kappa": -1.0}))
+    assert row["ok"] is False and "kappa" in row["error"]
+
+
+def test_table1_categories_follow_the_metrics():
+    clean = {"grade": "good", "overlap_area_fraction": 0.0, "inverted_fraction": 0.01, "bent_area_fraction": 0.0,
+             "bending_plane_rms_mm": 1.0, "broken_springs_fraction": 0.0, "hole_area_fraction": 0.0}
+    d = bench._defects(clean)
+    assert d == {"good": True, "overlapping": False, "bending": False, "broken": False}
+    d = bench._defects({**clean, "grade": "fair", "overlap_area_fraction": 0.05, "bending_plane_rms_mm": 20.0,
+                        "hole_area_fraction": 0.02})
+    assert d == {"good": False, "overlapping": True, "bending": True, "broken": True}
+
+
+def test_phantom_set_spans_the_variations():
+    names = [s["_name"] for s in bench.phantom_set("tiny")]
+    assert len(names) >= 8 and len(set(names)) == len(names)
+    kinds = {n.split("-")[0] for n in names}
+    assert {"straight", "bent", "j", "twisted", "thin_wall"} <= kinds
+    assert any("anisotropic" in n for n in names) and any("rugae" in n for n in names)
+    assert any("narrow" in n for n in names) and any("noisy" in n for n in names)
+
+
+@pytest.mark.skipif(not os.path.isdir(os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")),
+                    reason="needs ../shared/data")
+def test_real_cases_are_listed_when_the_data_is_there():
+    d = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
+    cases = bench._cases(quick=True, full_size=False, data_dir=d, parts=("real",))
+    assert {c["group"] for c in cases} == {"real"} and len(cases) >= 1
