@@ -15,7 +15,7 @@ from scipy import ndimage
 from .errors import AnatomyError, InputError, PointError
 from .geometry import Volume, lps_to_ras
 
-__all__ = ["snap_to_region", "air_region", "lumen_from_mask", "wall_region", "bounding_box",
+__all__ = ["distance_mm", "snap_to_region", "air_region", "lumen_from_mask", "wall_region", "bounding_box",
            "MAX_STOMACH_ML"]
 
 #: Air regions larger than this (mL) are not a stomach (lungs, bowel, outside air).
@@ -23,6 +23,25 @@ MAX_STOMACH_ML = 4000.0
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+def distance_mm(mask: np.ndarray, spacing) -> np.ndarray:
+    """Euclidean distance (mm, float32) from each True voxel to the nearest False voxel centre; 0 on False voxels.
+
+    The same numbers as ``scipy.ndimage.distance_transform_edt(mask, sampling=spacing[::-1])`` (``spacing``
+    in i, j, k order, mm), computed with SimpleITK's multi-threaded Maurer transform (3-4x faster here).
+    """
+    import SimpleITK as sitk
+
+    mask = np.asarray(mask, bool)
+    spacing = np.asarray(spacing, float).reshape(3)
+    if mask.all() or not mask.any():  # no False voxel (or no True one): leave it to scipy's conventions
+        return ndimage.distance_transform_edt(mask, sampling=spacing[::-1]).astype(np.float32)
+    img = sitk.GetImageFromArray((~mask).view(np.uint8))
+    img.SetSpacing(tuple(float(v) for v in spacing))
+    d = sitk.GetArrayFromImage(sitk.SignedMaurerDistanceMap(img, insideIsPositive=True, squaredDistance=False,
+                                                                useImageSpacing=True))
+    return np.where(mask, -d, 0.0).astype(np.float32)
+
+
 def bounding_box(mask: np.ndarray, margin_vox=(0, 0, 0)) -> tuple[np.ndarray, np.ndarray]:
     """Index box ``(lo, hi)`` in (i, j, k) voxels, hi exclusive, of the True voxels of ``mask[k, j, i]``.
 
@@ -208,7 +227,7 @@ def _cut_leaks(comp: np.ndarray, ct: Volume, seeds_kji, sides, voxel_ml: float,
     sl = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
     sub = comp[sl]
     sampling = ct.spacing[::-1]
-    dist = ndimage.distance_transform_edt(sub, sampling=sampling)
+    dist = distance_mm(sub, ct.spacing)
     seeds = np.array([[k - lo[2], j - lo[1], i - lo[0]] for k, j, i in seeds_kji], float)
     for r in necks_mm:
         core = dist >= r
@@ -221,7 +240,7 @@ def _cut_leaks(comp: np.ndarray, ct: Volume, seeds_kji, sides, voxel_ml: float,
             near = cidx[np.argmin(np.linalg.norm((cidx - sd) * sampling, axis=1))]
             keep.add(int(lab[tuple(near)]))
         kept = np.isin(lab, list(keep))
-        grown = sub & (ndimage.distance_transform_edt(~kept, sampling=sampling) <= r + float(max(sampling)))
+        grown = sub & (distance_mm(~kept, ct.spacing) <= r + float(max(sampling)))
         out = np.zeros_like(comp)
         out[sl] = grown
         if not _air_problem(out, sides, voxel_ml):
@@ -391,7 +410,7 @@ def wall_region(lumen: np.ndarray, spacing, thickness_mm: float = 5.0) -> np.nda
     margin = tuple(int(np.ceil(thickness_mm / s)) + 1 for s in spacing)
     lo, hi = bounding_box(lumen, margin)
     sub = lumen[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
-    dist = ndimage.distance_transform_edt(~sub, sampling=spacing[::-1])
+    dist = distance_mm(~sub, spacing)
     out = np.zeros_like(lumen)
     out[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]] = (~sub) & (dist <= thickness_mm)
     return out

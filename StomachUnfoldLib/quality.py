@@ -151,7 +151,7 @@ def surface_distortion(rest: np.ndarray, deformed: np.ndarray, tris: np.ndarray)
             "triangles": int(ok.sum())}
 
 
-def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, max_points: int = 20000,
+def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, max_points: int = 8000,
                   seed: int = 0) -> np.ndarray:
     """LPS points (mm) on the original inner wall (lumen voxels touching non-lumen) between the cardia and pylorus.
 

@@ -31,14 +31,14 @@ def wall_depth(points_lps, lumen: np.ndarray, volume, target_mm: float = 1.5) ->
     Computed from Euclidean distance transforms on a grid coarsened to about ``target_mm`` voxels, then
     interpolated trilinearly; accurate to about one coarse voxel, which is all the heights need.
     """
-    from scipy import ndimage
     from .geometry import Volume
+    from .preprocessing import distance_mm
 
     f = np.maximum(1, np.floor(target_mm / volume.spacing).astype(int))  # (i, j, k) factors
     sub = lumen[::f[2], ::f[1], ::f[0]]
     sp = volume.spacing * f
-    outside = ndimage.distance_transform_edt(~sub, sampling=sp[::-1])
-    inside = ndimage.distance_transform_edt(sub, sampling=sp[::-1])
+    outside = distance_mm(~sub, sp)
+    inside = distance_mm(sub, sp)
     sd = (outside - inside).astype(np.float32)
     coarse = Volume(sd, sp, volume.origin, volume.direction)
     return coarse.sample(points_lps, order=1, cval=float(sd.max())).astype(float)

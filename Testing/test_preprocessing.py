@@ -372,3 +372,18 @@ def test_real_ct_slab_stomach_air():
     assert (wall & stomach).sum() > 0.2 * wall.sum()
     lum, info2 = lumen_from_mask(stomach, ct, a, b)
     assert info2["volume_ml"] == pytest.approx(141.0, rel=0.2)
+
+
+def test_distance_mm_matches_scipy_with_anisotropic_spacing():
+    from scipy import ndimage as ndi
+
+    from StomachUnfoldLib.preprocessing import distance_mm
+
+    rng = np.random.default_rng(3)
+    m = ndi.gaussian_filter(rng.random((30, 35, 40)), 2) > 0.5
+    sp = np.array([0.7, 0.9, 2.5])  # i, j, k
+    for x in (m, ~m):
+        ref = ndi.distance_transform_edt(x, sampling=sp[::-1])
+        got = distance_mm(x, sp)
+        assert got.dtype == np.float32 and np.allclose(got, ref, atol=1e-4)
+    assert np.all(distance_mm(np.zeros((4, 4, 4), bool), sp) == 0)
