@@ -31,9 +31,9 @@ def Case(name: str, source: dict, params: dict | None = None, method: str = "mas
 
 
 def phantom_set(size: str = "small") -> list[dict]:
-    """At least 8 phantom shapes and sizes: curvature, twist, radius profile, wall, rugae, noise, spacing, direction."""
+    """Eleven phantoms: curvature (incl. a bend tighter than the lumen), twist, radius, wall, rugae, noise, spacing, direction."""
     aniso = (1.2, 1.2, 2.5) if size == "small" else (1.8, 1.8, 3.0)
-    specs = [("straight", {}), ("bent", {}), ("j", {}), ("twisted", {}), ("thin_wall", {}),
+    specs = [("straight", {}), ("bent", {}), ("j", {}), ("twisted", {}), ("thin_wall", {}), ("hook", {}),
              ("j-anisotropic", {"spacing": aniso}), ("j-flipped", {"flip_direction": True}),
              ("j-rugae", {"rugae": True}), ("j-noisy", {"noise_hu": 45.0}), ("bent-narrow", {"radius_scale": 0.55})]
     out = []

@@ -98,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("phantom", help="write a synthetic CT of a gas-distended stomach with markers")
     p.add_argument("output", help="output volume path (e.g. phantom.nrrd); a .json and .mrk.json go beside it")
-    p.add_argument("--shape", default="j", help="straight, bent, j, twisted or thin_wall")
+    p.add_argument("--shape", default="j", help="straight, bent, j, twisted, thin_wall or hook (a sharp angular incisure)")
     p.add_argument("--size", default="small", help="tiny, small, medium or full (512x512x400 at 0.7 mm)")
     p.add_argument("--spacing", default=None, help="voxel spacing sx,sy,sz in mm")
     p.add_argument("--wall-thickness-mm", type=float, default=4.0)

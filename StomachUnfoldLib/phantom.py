@@ -22,7 +22,7 @@ from .geometry import Volume, lps_to_ras
 
 __all__ = ["SHAPES", "SIZES", "stomach_centerline", "make_phantom", "write_phantom"]
 
-SHAPES = ("straight", "bent", "j", "twisted", "thin_wall")
+SHAPES = ("straight", "bent", "j", "twisted", "thin_wall", "hook")
 SIZES = {"tiny": 1.8, "small": 1.2, "medium": 0.9, "full": 0.7}
 HU = {"air": -1000, "wall": 40, "tissue": 30, "fat": -100, "liver": 60, "spleen": 50, "lung": -850, "marker": 400}
 
@@ -48,6 +48,14 @@ def stomach_centerline(shape: str = "j", n: int = 2000):
         if shape == "twisted":
             pts[:, 1] += 28.0 * np.sin(np.pi * s) * np.sin(2.2 * np.pi * s + 0.4)
         radius = 30.0 - 13.0 * np.clip((s - 0.55) / 0.45, 0, 1) + 3.0 * np.clip(0.25 - s, 0, 1) / 0.25
+    elif shape == "hook":
+        # a sharp angular incisure: the body descends and the antrum turns to the horizontal around a bend whose
+        # radius (under 20 mm) is smaller than the lumen's, so cross-sections of the bend cross inside it
+        ctrl = np.array([[20, 0, 80], [22, 0, 40], [20, 0, 8], [14, 0, -8], [2, 0, -15], [-15, 0, -18],
+                         [-40, 0, -19], [-65, 0, -18]], float)
+        cs = CubicSpline(np.linspace(0, 1, len(ctrl)), ctrl, axis=0)
+        pts = cs(s)
+        radius = 28.0 - 10.0 * np.clip((s - 0.5) / 0.5, 0, 1)
     else:
         raise InputError(f"unknown phantom shape {shape!r}; choose one of {', '.join(SHAPES)}")
     return pts, radius

@@ -80,7 +80,7 @@ def test_correspondence_round_trip_on_markers(j_run):
     assert np.allclose(back[ok], pts[ok], atol=1e-3)
 
 
-@pytest.mark.parametrize("kind", [dict(shape="bent"), dict(shape="straight"), dict(shape="twisted"), dict(shape="thin_wall"),
+@pytest.mark.parametrize("kind", [dict(shape="bent"), dict(shape="straight"), dict(shape="twisted"), dict(shape="thin_wall"), dict(shape="hook"),
                                   dict(shape="j", spacing=(1.8, 1.8, 3.0)), dict(shape="j", flip_direction=True)])
 def test_shapes_unfold_with_every_marker_seen(kind):
     ct, truth = make_phantom(size="tiny", **kind)
