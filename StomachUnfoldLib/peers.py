@@ -119,20 +119,14 @@ def _depth_axis(s: float, wall_thickness_mm: float):
 
 def _visible_fraction(vol: Volume, pts: np.ndarray, mapped: np.ndarray, threshold_hu: float = -400.0) -> dict:
     """As quality.quality_metrics: mucosa points whose column's first hit lies at their mapped depth."""
+    from .quality import visible_points
     from .view import first_hit
 
     k_hit, _ = first_hit(vol, threshold_hu)
     ok = np.all(np.isfinite(mapped), axis=1)
-    ijk = vol.lps_to_index(mapped[ok])
-    ii = np.rint(ijk[:, 0]).astype(int)
-    jj = np.rint(ijk[:, 1]).astype(int)
-    inside = (ii >= 0) & (ii < vol.array.shape[2]) & (jj >= 0) & (jj < vol.array.shape[1])
-    tol = max(2.0, 2.5 / float(vol.spacing[2]))
-    vis = np.zeros(len(ijk), bool)
-    vis[inside] = np.abs(k_hit[jj[inside], ii[inside]] - ijk[inside, 2]) <= tol
-    seen = k_hit >= 0
+    vis = visible_points(vol, mapped, k_hit)
     return {"visible_fraction": float(vis.sum() / max(len(pts), 1)), "mucosa_points": int(len(pts)),
-            "mucosa_points_mapped": int(ok.sum()), "seen_columns": int(seen.sum())}
+            "mucosa_points_mapped": int(ok.sum()), "seen_columns": int((k_hit >= 0).sum())}
 
 
 def _smooth_free_ends(points: np.ndarray, sigma_pts: float) -> np.ndarray:

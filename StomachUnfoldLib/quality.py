@@ -13,15 +13,15 @@ from scipy import ndimage
 from .geometry import Volume
 from .view import first_hit
 
-__all__ = ["layer_runs", "overlap_fraction", "visible_markers", "marker_report"]
+__all__ = ["layer_runs", "overlap_fraction", "visible_points", "visible_markers", "marker_report"]
 
 
 def layer_runs(unfolded: Volume, threshold_hu: float = -400.0, min_gap_mm: float = 1.5) -> np.ndarray:
     """Number of separate tissue runs (HU > threshold) along -k per (j, i) column; gaps under min_gap_mm merge."""
     a = unfolded.array > threshold_hu
-    gap = max(1, int(round(min_gap_mm / unfolded.spacing[2])))
-    if gap > 1:
-        a = ndimage.binary_closing(a, structure=np.ones((gap + 1, 1, 1), bool), border_value=0) | a
+    n = int(np.ceil(min_gap_mm / float(unfolded.spacing[2]) - 1e-9)) - 1  # gaps of up to n voxels are under min_gap_mm
+    if n >= 1:
+        a = ndimage.binary_closing(a, structure=np.ones((n + 1, 1, 1), bool), border_value=0) | a
     starts = a[1:] & ~a[:-1]
     return starts.sum(axis=0) + a[0].astype(int)
 
@@ -174,6 +174,22 @@ def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, 
     return pts
 
 
+def visible_points(vol: Volume, mapped_lps: np.ndarray, k_hit: np.ndarray) -> np.ndarray:
+    """Which points mapped into the unfolded volume (LPS mm) are the first tissue their ray down -k meets (k_hit from first_hit)."""
+    mapped_lps = np.asarray(mapped_lps, float).reshape(-1, 3)
+    vis = np.zeros(len(mapped_lps), bool)
+    ok = np.all(np.isfinite(mapped_lps), axis=1)
+    ijk = vol.lps_to_index(mapped_lps[ok])
+    ii = np.rint(ijk[:, 0]).astype(int)
+    jj = np.rint(ijk[:, 1]).astype(int)
+    inside = (ii >= 0) & (ii < vol.array.shape[2]) & (jj >= 0) & (jj < vol.array.shape[1])
+    tol = max(2.0, 2.5 / float(vol.spacing[2]))  # voxels along k: 2 voxels or 2.5 mm
+    seen = np.zeros(len(ijk), bool)
+    seen[inside] = np.abs(k_hit[jj[inside], ii[inside]] - ijk[inside, 2]) <= tol
+    vis[ok] = seen
+    return vis
+
+
 def quality_metrics(result, marker_lps: dict | None = None, threshold_hu: float = -400.0) -> dict:
     """All automatic quality metrics of an UnfoldResult (needs its lumen_crop), plus marker metrics if given."""
     vol = result.unfolded
@@ -183,14 +199,7 @@ def quality_metrics(result, marker_lps: dict | None = None, threshold_hu: float 
     pts = mucosa_points(result.lumen_crop, result.centerline_lps)
     mapped = result.correspondence.to_unfolded(pts) if len(pts) else np.zeros((0, 3))
     ok = np.all(np.isfinite(mapped), axis=1)
-    ijk = vol.lps_to_index(mapped[ok])
-    ii = np.rint(ijk[:, 0]).astype(int)
-    jj = np.rint(ijk[:, 1]).astype(int)
-    inside = (ii >= 0) & (ii < vol.array.shape[2]) & (jj >= 0) & (jj < vol.array.shape[1])
-    tol = max(2.0, 2.5 / float(vol.spacing[2]))
-    vis = np.zeros(len(ijk), bool)
-    vis[inside] = np.abs(k_hit[jj[inside], ii[inside]] - ijk[inside, 2]) <= tol
-    visible_fraction = float(vis.sum() / max(len(pts), 1))
+    visible_fraction = float(visible_points(vol, mapped, k_hit).sum() / max(len(pts), 1))
     # overlapping: two layers on a ray; inverted cells of the model
     runs = layer_runs(vol, threshold_hu)
     over = ndimage.binary_opening(runs > 1, structure=np.ones((2, 2), bool))

@@ -5,7 +5,8 @@ import pytest
 from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldLib.phantom import make_phantom
 from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
-from StomachUnfoldLib.quality import GRADE_THRESHOLDS, layer_runs, surface_distortion
+from StomachUnfoldLib.quality import GRADE_THRESHOLDS, layer_runs, surface_distortion, visible_points
+from StomachUnfoldLib.view import first_hit
 
 
 def test_surface_distortion_known_maps():
@@ -27,6 +28,26 @@ def test_layer_runs_counts_separate_layers():
     a[10:14, 0, 0] = 40  # a second layer over one column
     runs = layer_runs(Volume(a, [1.0, 1.0, 1.0]))
     assert runs[0, 0] == 2 and runs[1, 1] == 1
+
+
+@pytest.mark.parametrize("spacing, gap_voxels, runs_expected", [(1.2, 1, 1), (1.2, 2, 2), (0.7, 2, 1), (0.7, 3, 2),
+                                                                (1.8, 1, 2), (0.5, 2, 1)])
+def test_layer_runs_merge_gaps_under_min_gap_mm(spacing, gap_voxels, runs_expected):
+    a = np.full((20, 1, 1), -1000, np.int16)  # a crease of gap_voxels * spacing mm inside one wall layer
+    a[3:7] = 40
+    a[7 + gap_voxels:12 + gap_voxels] = 40
+    assert layer_runs(Volume(a, [1.0, 1.0, spacing]), min_gap_mm=1.5)[0, 0] == runs_expected
+
+
+def test_visible_points_only_the_first_layer_of_a_column():
+    a = np.full((20, 4, 4), -1000, np.int16)  # (k, j, i); the viewer looks down -k, so the top layer is at high k
+    a[14:16] = 40  # top layer over every column
+    a[5:7, :, :2] = 40  # a deeper layer under the left half
+    vol = Volume(a, [1.0, 1.0, 1.0])
+    k_hit, _ = first_hit(vol)
+    pts = vol.index_to_lps(np.array([[1, 1, 15], [1, 1, 6], [3, 3, 15], [9, 1, 15]], float))
+    pts = np.vstack([pts, [np.nan, 0, 0]])
+    assert visible_points(vol, pts, k_hit).tolist() == [True, False, True, False, False]
 
 
 @pytest.fixture(scope="module")
