@@ -16,7 +16,7 @@ install: $(BIN)/stomach-unfold
 
 demo: install
 	$(BIN)/stomach-unfold phantom $(DEMO_OUT)/phantom.nrrd --size small
-	$(BIN)/stomach-unfold unfold $(DEMO_OUT)/phantom.nrrd --points $(DEMO_OUT)/phantom.mrk.json --grid-mm 5 --output-dir $(DEMO_OUT)/unfold
+	$(BIN)/stomach-unfold unfold $(DEMO_OUT)/phantom.nrrd --points $(DEMO_OUT)/phantom.mrk.json --output-dir $(DEMO_OUT)/unfold
 	@echo "Demo written to $(DEMO_OUT)/unfold: open view.png and report.json"
 
 test: install

@@ -95,7 +95,7 @@ def _makeParameterNodeClass():
         inputVolume: slicer.vtkMRMLScalarVolumeNode
         pointsNode: slicer.vtkMRMLMarkupsFiducialNode
         maskNode: slicer.vtkMRMLNode = None
-        gridSize: int = 8
+        gridSize: int = 0  # d in voxels; 0: automatic, cells of DEFAULT_CELL_MM (5.6 mm, the paper's d = 8 at 0.7 mm)
         kappa: float = 0.5
         incision: str = "greater"
         wallThicknessMm: float = 5.0
@@ -127,7 +127,7 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
     Example (Python console)::
 
         logic = slicer.util.getModuleLogic("StomachUnfold")  # or StomachUnfoldLogic()
-        out = logic.unfold(getNode("CT"), cardiaRAS=[-31, 0, 73], pylorusRAS=[58, 0, -28], gridSize=8)
+        out = logic.unfold(getNode("CT"), cardiaRAS=[-31, 0, 73], pylorusRAS=[58, 0, -28], kappa=0.5)
         out["volume"], out["report"]["quality"]["grade"]
     """
 
@@ -243,14 +243,16 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
         """Unfold the stomach of ``volumeNode`` between two RAS points (mm); returns a dict of new nodes and the report.
 
         ``params`` are StomachUnfoldLib.pipeline.UnfoldParameters fields (snake_case) or this module's
-        parameter names (gridSize, kappa, incision, wallThicknessMm, beta, gamma, timeStep, springStiffness,
-        damping, maxIterations). ``progress(stage, fraction)`` may return False to cancel. On error or
+        parameter names (gridSize: d in voxels, 0 or None for cells of 5.6 mm; kappa, incision, wallThicknessMm,
+        beta, gamma, timeStep, springStiffness, damping, maxIterations). ``progress(stage, fraction)`` may return False to cancel. On error or
         cancel no node is left in the scene and the input nodes are unchanged.
         """
         from StomachUnfoldLib.geometry import ras_to_lps
         from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
 
         kwargs = {PARAMETER_MAP.get(k, k): v for k, v in params.items()}
+        if kwargs.get("grid_size") == 0:  # the panel's "automatic" cell size
+            kwargs["grid_size"] = None
         try:
             unfoldParams = UnfoldParameters(**kwargs)
         except TypeError as e:

@@ -54,7 +54,8 @@ def _points_from_file(path: str):
 
 
 _PARAM_HELP = {
-    "grid_size": "cell size d in voxels (the paper's d)", "grid_mm": "cell size in mm (overrides --grid-size)",
+    "grid_size": "cell size d in voxels (the paper's d; default: 5.6 mm cells, i.e. d = 8 at 0.7 mm)",
+    "grid_mm": "cell size in mm (overrides --grid-size; default 5.6)",
     "kappa": "termination threshold |D(a-1)-D(a)| in mm", "incision": "incision side",
     "wall_thickness_mm": "stomach wall thickness in mm", "air_threshold_hu": "air threshold in HU",
     "output_spacing_mm": "unfolded volume spacing in mm (default: input in-plane spacing)",
@@ -85,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     for f in fields(UnfoldParameters):
         flag = "--" + f.name.replace("_", "-")
         default = f.default
-        kind = type(default) if default is not None else float
+        kind = type(default) if default is not None else (int if str(f.type).startswith("int") else float)
         if kind is bool:
             u.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes", "on"), default=default,
                            help=f"{_PARAM_HELP.get(f.name, f.name)} (default {default})")
@@ -116,6 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--parts", default="shapes,kappa,sweep,stability,resolution,peers,real,scaling",
                    help="comma-separated parts to run")
     b.add_argument("--data-dir", default=None, help="folder of the real CTs (default ../shared/data)")
+    b.add_argument("--replot", action="store_true",
+                   help="only redraw the PNGs and results.md from OUTPUT_DIR/results.json (runs nothing)")
     return ap
 
 
@@ -193,8 +196,12 @@ def _cmd_phantom(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    from .bench import run_benchmark
+    from .bench import replot, run_benchmark
 
+    if args.replot:
+        made = replot(args.output_dir)
+        print(f"bench: redrew {len(made)} PNGs and {args.output_dir}/results.md from results.json")
+        return 0
     rows = run_benchmark(args.output_dir, quick=args.quick, full_size=args.full_size, scheduler=args.scheduler,
                          data_dir=args.data_dir, parts=tuple(p.strip() for p in args.parts.split(",") if p.strip()))
     failed = sum(not r.get("ok") for r in rows)

@@ -48,6 +48,21 @@ def test_bad_volumes(phantom, make, err, text):
         unfold(make(ct), *_pts(truth), TINY)
 
 
+def test_cell_size_defaults_to_the_papers_cell_in_mm_whatever_the_spacing():
+    assert UnfoldParameters().grid_voxels((0.7, 0.7, 0.7)) == 8  # the paper's d = 8
+    assert UnfoldParameters().grid_voxels((1.2, 1.2, 2.5)) == 5  # 5.6 mm, not 8 voxels of 9.6 mm
+    assert UnfoldParameters(grid_size=3).grid_voxels((1.2, 1.2, 1.2)) == 3
+    assert UnfoldParameters(grid_size=8, grid_mm=3.6).grid_voxels((1.2, 1.2, 1.2)) == 3  # grid_mm overrides
+    assert UnfoldParameters(grid_mm=0.1).grid_voxels((1.2, 1.2, 1.2)) == 1
+    for bad in (dict(grid_size=0), dict(grid_size=2.5), dict(grid_mm=-1.0)):
+        with pytest.raises(InputError, match="grid"):
+            UnfoldParameters(**bad).validate()
+    from StomachUnfoldLib.cli import build_parser
+
+    args = build_parser().parse_args(["unfold", "ct.nrrd", "-o", "out", "--grid-size", "6"])
+    assert args.grid_size == 6 and isinstance(args.grid_size, int) and args.grid_mm is None
+
+
 def test_bad_points(phantom):
     ct, truth = phantom
     c, p = _pts(truth)

@@ -172,9 +172,11 @@ def test_parameter_node_run(ctx, phantom):
     scene, app, logics, logic, mod = ctx
     vol, pts = _inputs(scene, logic, phantom)
     p = logic.getParameterNode()
-    p.inputVolume, p.pointsNode, p.gridSize, p.wallThicknessMm = vol, pts, 3, 4.0
+    assert p.gridSize == 0  # automatic: cells of 5.6 mm, d = 3 on the 1.8 mm phantom
+    p.inputVolume, p.pointsNode, p.wallThicknessMm = vol, pts, 4.0
     out = logic.unfoldFromParameterNode(p)
     assert p.outputVolume is out["volume"]
+    assert out["report"]["model"]["grid_size_d"] == 3 and out["report"]["parameters"]["grid_size"] is None
     with pytest.raises(ValueError):
         logic.unfold(vol, [0, 0, 0], [1, 1, 1], notAParameter=3)
 
