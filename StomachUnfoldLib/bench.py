@@ -15,14 +15,13 @@ import traceback
 
 import numpy as np
 
-from .errors import StomachUnfoldError
+from .errors import InputError, StomachUnfoldError
 
-__all__ = ["Case", "phantom_set", "run_case", "run_cases", "run_benchmark", "paper_forces", "KAPPAS"]
+__all__ = ["Case", "phantom_set", "run_case", "run_cases", "run_benchmark", "replot", "paper_forces", "KAPPAS"]
 
 #: The paper's forces alone (no guided destinations, no flattening force, the weaker pull of our first version).
 paper_forces = {"ramp_iterations": 0, "flattening_stiffness": 0.0, "unfolding_stiffness": 0.5}
 KAPPAS = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
-CELL = {"grid_mm": 5.6}  # the paper's d = 8 voxels at 0.7 mm, whatever the phantom's spacing
 
 
 def Case(name: str, source: dict, params: dict | None = None, method: str = "massspring", group: str = "") -> dict:
@@ -162,24 +161,23 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
     cases = []
     if "shapes" in parts:
         for src in shapes:
-            cases.append(Case(src["_name"], src, CELL, group="shapes"))
-            cases.append(Case(src["_name"] + "/paper-forces", src, {**CELL, **paper_forces}, group="shapes-paper"))
+            cases.append(Case(src["_name"], src, {}, group="shapes"))
+            cases.append(Case(src["_name"] + "/paper-forces", src, {**paper_forces}, group="shapes-paper"))
     if "kappa" in parts:
         for k in (KAPPAS if not quick else [0.2, 1.0]):
             for src in shapes:
-                cases.append(Case(f"{src['_name']}/kappa={k}", src, {**CELL, "kappa": k}, group="kappa"))
-                cases.append(Case(f"{src['_name']}/kappa={k}/paper", src, {**CELL, "kappa": k, **paper_forces},
+                cases.append(Case(f"{src['_name']}/kappa={k}", src, {"kappa": k}, group="kappa"))
+                cases.append(Case(f"{src['_name']}/kappa={k}/paper", src, {"kappa": k, **paper_forces},
                                   group="kappa-paper"))
     sweep_src = [s for s in shapes if s["_name"].split("-")[0] in ("j", "twisted", "bent")][:3]
     if "sweep" in parts:
-        configs = [{"grid_mm": g} for g in (3.6, 5.6, 8.4)] + [{**CELL, "kappa": k} for k in (0.2, 1.0)] + \
-                  [{**CELL, "time_step": h} for h in (0.5, 2.0, 4.0)] + \
-                  [{**CELL, "integrator": "explicit", "time_step": h, "max_retries": 0} for h in (0.05, 0.1)]
+        configs = [{"grid_mm": g} for g in (3.6, 5.6, 8.4)] + [{"kappa": k} for k in (0.2, 1.0)] + \
+                  [{"time_step": h} for h in (0.5, 2.0, 4.0)] + \
+                  [{"integrator": "explicit", "time_step": h, "max_retries": 0} for h in (0.05, 0.1)]
         if quick:
             configs = configs[:2]
         for cfg in configs:
-            label = ",".join(f"{k}={v}" for k, v in cfg.items()
-                             if k != "max_retries" and not (k == "grid_mm" and v == CELL["grid_mm"] and len(cfg) > 1))
+            label = ",".join(f"{k}={v}" for k, v in cfg.items() if k != "max_retries")
             for src in sweep_src:
                 cases.append(Case(f"{src['_name']}/{label}", src, cfg, group="sweep"))
     if "stability" in parts:
@@ -187,14 +185,14 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         for h in ((0.1, 1.0, 10.0) if quick else (0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)):
             for integ in ("newmark", "explicit"):
                 cases.append(Case(f"{src['_name']}/{integ}/h={h}", src,
-                                  {**CELL, "integrator": integ, "time_step": h, "max_retries": 0,
+                                  {"integrator": integ, "time_step": h, "max_retries": 0,
                                    "max_iterations": 400}, group="stability"))
         extremes = [{"shape": "twisted", "size": size, "_name": f"twisted-{size}"},
                     {"shape": "j", "size": size, "wall_thickness_mm": 1.5, "_name": f"j-wall1.5-{size}"},
                     {"shape": "j", "size": size, "radius_scale": 0.3, "_name": f"j-lumen0.3-{size}"}]
         for src in (extremes if not quick else extremes[2:]):
             for k in (0.1, 2.0):
-                cases.append(Case(f"{src['_name']}/kappa={k}", src, {**CELL, "kappa": k}, group="extremes"))
+                cases.append(Case(f"{src['_name']}/kappa={k}", src, {"kappa": k}, group="extremes"))
     if "resolution" in parts:
         src = [s for s in shapes if s["_name"].startswith("j-") or s["_name"] == f"j-{size}"][0]
         for g in ((4.2, 8.4) if quick else (2.8, 4.2, 5.6, 8.4, 11.2)):
@@ -227,7 +225,7 @@ def _serial_cases(quick: bool, full_size: bool, parts) -> list[dict]:
     if "scaling" in parts:
         sizes = ("tiny", "small") if quick else ("tiny", "small", "medium") + (("full",) if full_size else ())
         for size in sizes:
-            cases.append(Case(f"j-{size}/volume", {"shape": "j", "size": size}, CELL, group="scaling-volume"))
+            cases.append(Case(f"j-{size}/volume", {"shape": "j", "size": size}, {}, group="scaling-volume"))
         if full_size:
             for g in (4.2, 5.6, 8.4, 11.2):
                 cases.append(Case(f"j-full/grid_mm={g}", {"shape": "j", "size": "full"}, {"grid_mm": g},
@@ -235,7 +233,7 @@ def _serial_cases(quick: bool, full_size: bool, parts) -> list[dict]:
         size = "tiny" if quick else "small"
         for m in ((0.0, 1000.0) if quick else (0.0, 15.0, 40.0, 1000.0)):
             cases.append(Case(f"j-{size}/crop_margin_mm={m:g}", {"shape": "j", "size": size},
-                              {**CELL, "crop_margin_mm": m}, group="crop"))
+                              {"crop_margin_mm": m}, group="crop"))
     return cases
 
 
@@ -527,7 +525,8 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
             mk = f"{r.get('markers_seen', '')}/{r.get('markers_total', '')}" if r.get("markers_total") else ""
             L.append(f"| {r['name']} | {r['seconds']:.2f} | {r.get('iterations', '')} | {q.get('grade', '')} | "
                      f"{100 * q.get('visible_fraction', float('nan')):.1f} | {mk} | "
-                     f"{100 * q.get('overlap_area_fraction', 0):.2f} | {100 * q.get('inverted_fraction', 0):.1f} | "
+                     f"{100 * q.get('overlap_area_fraction', 0):.2f} | "
+                     f"{100 * q.get('inverted_fraction', q.get('fold_back_fraction', 0)):.1f} | "
                      f"{q.get('bending_plane_rms_mm', float('nan')):.1f} | "
                      f"{q.get('area_distortion', float('nan')):.2f}/{q.get('angle_distortion', float('nan')):.2f} |")
         L.append("")
@@ -561,21 +560,23 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     table("scaling-grid", "Scaling with cell size at full size (each run alone in a fresh process)")
     table("crop", "Crop size: extra margin around the stomach (each run alone in a fresh process)")
     table("real", "Real CTs with their stomach labels (not gas-distended)")
-    peers = [r for r in rows if r["group"] == "peers"]
-    if peers:
-        L.append("## Peers on the same phantoms\n")
-        L.append("| case | s | markers | overlap % |")
-        L.append("|---|---|---|---|")
-        for r in peers:
-            if r.get("ok"):
-                L.append(f"| {r['name']} | {r['seconds']:.2f} | {r.get('markers_seen', '')}/{r.get('markers_total', '')} "
-                         f"| {100 * r['quality'].get('overlap_area_fraction', 0):.2f} |")
-            else:
-                L.append(f"| {r['name']} | failed: {r['error'][:90]} | | |")
-        L.append("")
+    table("peers", "Peers on the same phantoms (the inverted column: wall folded back along the unrolling)")
     for png in made:
         L.append(f"![{png}]({png})\n")
     return "\n".join(L) + "\n"
+
+
+def replot(out_dir: str = "docs/benchmark") -> list[str]:
+    """Rewrite the PNGs and results.md of out_dir from its results.json, without running anything."""
+    path = os.path.join(out_dir, "results.json")
+    if not os.path.exists(path):
+        raise InputError(f"no {path}: run the benchmark first (stomach-unfold bench -o {out_dir})")
+    with open(path) as f:
+        data = json.load(f)
+    made = _plots(data["cases"], out_dir, data.get("full_size"))
+    with open(os.path.join(out_dir, "results.md"), "w") as f:
+        f.write(_markdown(data["cases"], data.get("full_size"), data["meta"], made))
+    return made
 
 
 def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_size: bool = False,

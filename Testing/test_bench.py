@@ -30,6 +30,18 @@ def test_quick_stability_bench_reports_explicit_divergence_as_data(tmp_path):
     for r in rows:
         if r["ok"]:
             assert (tmp_path / "views" / bench.png_name(r["name"])).exists()
+    # --replot redraws the charts and the tables from results.json alone
+    os.remove(tmp_path / "stability.png")
+    (tmp_path / "results.md").write_text("")
+    assert "stability.png" in bench.replot(str(tmp_path))
+    assert (tmp_path / "stability.png").exists() and (tmp_path / "results.md").read_text() == md
+
+
+def test_replot_without_results_says_to_run_the_benchmark(tmp_path):
+    from StomachUnfoldLib.errors import InputError
+
+    with pytest.raises(InputError, match="run the benchmark first"):
+        bench.replot(str(tmp_path))
 
 
 def test_a_broken_case_is_a_row_not_a_crash():
