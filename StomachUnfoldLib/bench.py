@@ -216,6 +216,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         for name, src in reals:
             if os.path.exists(src["real"]):
                 cases.append(Case(name, src, {"grid_size": 2, "wall_thickness_mm": 4.0}, group="real"))
+                for m in ("cylindrical", "lscm"):  # the peers on the same CTs and labels
+                    cases.append(Case(f"{name}/{m}", src, {}, method=m, group="real"))
     return cases
 
 
@@ -348,6 +350,24 @@ def full_size_runs(out_dir: str, slices=(400, 500), profile: bool = True) -> dic
     return runs
 
 
+def _plain_log_ticks(ax, axes="xy") -> None:
+    """Log axes labelled 2, 5, 10 ... instead of 2x10^0 (minor labels off)."""
+    from matplotlib.ticker import FuncFormatter
+
+    def minor(axis):
+        def fmt(v, _):
+            lo, hi = sorted(axis.get_view_interval())
+            mantissa = round(v / 10 ** np.floor(np.log10(v)), 6) if v > 0 else 0
+            few = lo > 0 and hi / lo < 10.0  # under a decade: label every minor tick, else only 2 and 5
+            return f"{v:g}" if few or mantissa in (2.0, 5.0) else ""
+        return FuncFormatter(fmt)
+
+    for name in axes:
+        axis = ax.xaxis if name == "x" else ax.yaxis
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(minor(axis))
+
+
 def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
     import matplotlib
 
@@ -386,8 +406,8 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
                 c = colour.get(label, "tab:red" if label.startswith("explicit") or "integrator=explicit" in label
                                else "tab:blue")
                 ax.scatter(x, y, color=c, marker="s" if label in ("cylindrical", "lscm") else "o", s=30)
-                ax.annotate(label.replace("integrator=", "")[:30], (x, y), fontsize=7, xytext=(3, 3),
-                            textcoords="offset points")
+                ax.annotate(label.replace("integrator=", "")[:30], (x, y), fontsize=7,
+                            xytext=(4, 4 if len(xy) % 2 else -10), textcoords="offset points")
             front, best = [], np.inf
             for x, y, _ in sorted(xy):
                 if y < best:
@@ -397,6 +417,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
                 ax.step(*zip(*front), where="post", color="k", ls=":", lw=1, label="Pareto front")
                 ax.legend(fontsize=8)
             ax.set_xscale("log")
+            _plain_log_ticks(ax, "x")
             ax.set_xlabel("seconds per case (mean)")
             ax.set_ylabel(ylabel)
             ax.grid(alpha=0.3, which="both")
@@ -418,6 +439,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
                 if not r.get("ok"):
                     ax.annotate("diverged", (h, 0.0), fontsize=7, rotation=60)
         ax.set_xscale("log")
+        _plain_log_ticks(ax, "x")
         ax.set_xlabel("time step h")
         ax.set_ylabel("visible mucosa fraction")
         ax.legend()
@@ -463,6 +485,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
             for xi, yi, r in zip(x, y, rs):
                 ax.annotate(r["name"].split("/")[-1] if grp != "scaling-volume" else r["name"].split("/")[0],
                             (xi, yi), fontsize=7)
+            _plain_log_ticks(ax)
             ax.set_xlabel(xlabel)
             ax.set_ylabel("seconds (unfold)")
             ax.grid(alpha=0.3, which="both")
@@ -474,12 +497,14 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
         made.append("scaling.png")
     if full:
         fig, ax = plt.subplots(figsize=(10, 2.8))
+        colours = {}
         for yi, (n, f) in enumerate(sorted(full.items())):
             parts = [("read", f["read_volume_s"])] + [(k, v) for k, v in f["stage_seconds"].items() if k != "total"] + \
                     [("write", f["write_outputs_s"])]
             left = 0.0
             for k, v in parts:
-                ax.barh(yi, v, left=left)
+                c = colours.setdefault(k, plt.cm.tab20(len(colours) % 20))  # one colour per stage in every bar
+                ax.barh(yi, v, left=left, color=c, edgecolor="white", linewidth=0.5)
                 if v > 0.25:
                     ax.text(left + v / 2, yi, k, ha="center", va="center", fontsize=7, rotation=90)
                 left += v
@@ -496,7 +521,9 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
 
 def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) -> str:
     L = [f"# Benchmark\n\nRun {meta['date']} on {meta['machine']['cpus']} CPUs ({meta['machine']['platform']}), "
-         f"{meta['wall_seconds']:.0f} s wall time. Every number below is measured in this run.\n"]
+         f"{meta['wall_seconds']:.0f} s wall time. Every number below is measured in this run"
+         + "".join(f"; the rows of {', '.join(m['parts'])} ({m['cases']} cases) were rerun on {m['date']} with "
+                   "--merge" for m in meta.get("merged", [])) + ".\n"]
     for n, f in (full or {}).items():
         ok15 = "met" if f["pipeline_s"] < 15 else "missed"
         L.append(f"## Full-size CT (512 x 512 x {n} at 0.7 mm, d = 8)\n")
@@ -566,6 +593,14 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     return "\n".join(L) + "\n"
 
 
+def _merge(old: dict, rows: list[dict], full: dict | None, meta: dict, parts) -> tuple[list[dict], dict | None, dict]:
+    """Rows of an earlier results.json with those of this run put in place by name (new names appended)."""
+    mine = {r["name"]: r for r in rows}
+    run = {"date": meta["date"], "parts": list(parts), "cases": len(rows), "wall_seconds": meta["wall_seconds"]}
+    merged = [mine.pop(r["name"], r) for r in old["cases"]] + list(mine.values())
+    return merged, full or old.get("full_size"), {**old["meta"], "merged": old["meta"].get("merged", []) + [run]}
+
+
 def replot(out_dir: str = "docs/benchmark") -> list[str]:
     """Rewrite the PNGs and results.md of out_dir from its results.json, without running anything."""
     path = os.path.join(out_dir, "results.json")
@@ -581,8 +616,13 @@ def replot(out_dir: str = "docs/benchmark") -> list[str]:
 
 def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_size: bool = False,
                   scheduler: str | None = None, data_dir: str | None = None,
-                  parts=("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling")) -> list[dict]:
-    """Run the benchmark (all parts, or a quick subset) and write results.json, results.md and PNGs into out_dir."""
+                  parts=("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling"),
+                  merge: bool = False) -> list[dict]:
+    """Run the benchmark (all parts, or a quick subset) and write results.json, results.md and PNGs into out_dir.
+
+    With ``merge`` the new rows replace the rows of the same name in an existing results.json and the others
+    are kept (the run is listed under meta["merged"]); otherwise results.json holds this run alone.
+    """
     os.makedirs(out_dir, exist_ok=True)
     t0 = time.perf_counter()
     if data_dir is None:
@@ -597,8 +637,12 @@ def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_siz
     meta = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "wall_seconds": time.perf_counter() - t0,
             "quick": quick, "scheduler": scheduler or "LocalCluster"}
+    path = os.path.join(out_dir, "results.json")
+    if merge and os.path.exists(path):
+        with open(path) as f:
+            rows, full, meta = _merge(json.load(f), rows, full, meta, parts)
     made = _plots(rows, out_dir, full)
-    with open(os.path.join(out_dir, "results.json"), "w") as f:
+    with open(path, "w") as f:
         json.dump({"meta": meta, "full_size": full, "cases": rows}, f, indent=1,
                   default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
     with open(os.path.join(out_dir, "results.md"), "w") as f:

@@ -117,6 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--parts", default="shapes,kappa,sweep,stability,resolution,peers,real,scaling",
                    help="comma-separated parts to run")
     b.add_argument("--data-dir", default=None, help="folder of the real CTs (default ../shared/data)")
+    b.add_argument("--merge", action="store_true",
+                   help="replace only the rerun rows in OUTPUT_DIR/results.json and keep the others")
     b.add_argument("--replot", action="store_true",
                    help="only redraw the PNGs and results.md from OUTPUT_DIR/results.json (runs nothing)")
     return ap
@@ -203,7 +205,8 @@ def _cmd_bench(args) -> int:
         print(f"bench: redrew {len(made)} PNGs and {args.output_dir}/results.md from results.json")
         return 0
     rows = run_benchmark(args.output_dir, quick=args.quick, full_size=args.full_size, scheduler=args.scheduler,
-                         data_dir=args.data_dir, parts=tuple(p.strip() for p in args.parts.split(",") if p.strip()))
+                         data_dir=args.data_dir, parts=tuple(p.strip() for p in args.parts.split(",") if p.strip()),
+                         merge=args.merge)
     failed = sum(not r.get("ok") for r in rows)
     print(f"bench: {len(rows)} cases, {failed} failed (as data), results in {args.output_dir}/results.md")
     return 0

@@ -76,3 +76,15 @@ def test_real_cases_are_listed_when_the_data_is_there():
     d = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
     cases = bench._cases(quick=True, full_size=False, data_dir=d, parts=("real",))
     assert {c["group"] for c in cases} == {"real"} and len(cases) >= 1
+
+
+def test_merge_replaces_rows_by_name_and_keeps_the_rest():
+    old = {"meta": {"date": "then", "wall_seconds": 9.0}, "full_size": {"500": {"pipeline_s": 5.0}},
+           "cases": [{"name": "a", "seconds": 1.0, "group": "real", "ok": False, "error": "x"}, {"name": "b", "seconds": 2.0, "group": "real", "ok": False, "error": "x"}]}
+    rows, full, meta = bench._merge(old, [{"name": "b", "seconds": 3.0, "group": "real", "ok": False, "error": "x"},
+                                         {"name": "c", "seconds": 4.0, "group": "real", "ok": False, "error": "x"}], None,
+                                    {"date": "now", "wall_seconds": 1.0}, ("real",))
+    assert [(r["name"], r["seconds"]) for r in rows] == [("a", 1.0), ("b", 3.0), ("c", 4.0)]
+    assert full == old["full_size"] and meta["date"] == "then"
+    assert meta["merged"] == [{"date": "now", "parts": ["real"], "cases": 2, "wall_seconds": 1.0}]
+    assert "rerun on now with --merge" in bench._markdown(rows, None, {**meta, "machine": {"cpus": 2, "platform": "x"}}, [])
