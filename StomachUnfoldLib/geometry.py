@@ -32,6 +32,19 @@ def lps_to_ras(points):
     return ras_to_lps(points)
 
 
+class _ImageBuffer:
+    """Owner of a SimpleITK image exposing its pixel buffer read-only: numpy arrays made from it keep it alive."""
+
+    def __init__(self, image):
+        import SimpleITK as sitk
+
+        self._image = image
+        view = sitk.GetArrayViewFromImage(image)
+        interface = dict(view.__array_interface__)
+        interface["data"] = (interface["data"][0], True)  # read-only: the input CT is never modified
+        self.__array_interface__ = interface
+
+
 @dataclass
 class Volume:
     """A 3D image with its geometry: ``array[k, j, i]``, spacing (mm, i/j/k order), LPS origin (mm), direction.
@@ -134,13 +147,18 @@ class Volume:
 
     # ------------------------------------------------------------------ SimpleITK bridge
     @classmethod
-    def from_sitk(cls, image) -> "Volume":
-        """Build a Volume from a 3D SimpleITK image (geometry copied, LPS)."""
+    def from_sitk(cls, image, copy: bool = True) -> "Volume":
+        """Build a Volume from a 3D SimpleITK image (geometry copied, LPS).
+
+        With ``copy=False`` the array is a read-only view of the image's buffer that keeps the image alive: no
+        second copy of a large CT (about 0.3 to 0.6 s and 260 MB for 512 x 512 x 500), and no way to modify it.
+        """
         import SimpleITK as sitk
 
         if image.GetDimension() != 3:
             raise ValueError(f"expected a 3D image, got {image.GetDimension()}D")
-        return cls(sitk.GetArrayFromImage(image), np.array(image.GetSpacing()),
+        array = sitk.GetArrayFromImage(image) if copy else np.asarray(_ImageBuffer(image))
+        return cls(array, np.array(image.GetSpacing()),
                    np.array(image.GetOrigin()), np.array(image.GetDirection()).reshape(3, 3))
 
     def to_sitk(self):

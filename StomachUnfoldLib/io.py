@@ -97,7 +97,7 @@ def read_volume(path, series_uid: str | None = None) -> Volume:
         first = str(e).strip().splitlines()[0] if str(e).strip() else "unknown error"
         raise InputError(f"cannot read {path}: {first}") from None
     _check_image(img, path)
-    vol = Volume.from_sitk(img)
+    vol = Volume.from_sitk(img, copy=False)  # read-only view, no second copy of the CT
     if vol.array.dtype.kind not in "iuf":
         raise InputError(f"{path} does not hold numbers (dtype {vol.array.dtype})")
     return vol

@@ -120,3 +120,19 @@ def test_dicom_folder_with_several_series_names_them_and_reads_the_chosen_one(tm
     assert np.allclose(got.spacing, b.spacing, atol=1e-3)
     with pytest.raises(InputError, match="not in"):
         suio.read_volume(str(tmp_path), series_uid=study + ".999")
+
+
+def test_read_volume_is_a_read_only_view_that_outlives_its_image(tmp_path):
+    import gc
+
+    a = (np.arange(6 * 7 * 8, dtype=np.int16).reshape(8, 7, 6) * 3 - 1000)
+    path = suio.write_volume(Volume(a, [0.8, 0.9, 2.0], [1.0, 2.0, 3.0]), str(tmp_path / "ct.nrrd"))
+    vol = suio.read_volume(path)
+    gc.collect()  # the SimpleITK image is referenced only through the array's base
+    assert np.array_equal(vol.array, a) and not vol.array.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        vol.array[0, 0, 0] = 0
+    sub = vol.array[2:5]
+    del vol
+    gc.collect()
+    assert np.array_equal(sub, a[2:5])
