@@ -23,7 +23,7 @@ test: install
 	$(BIN)/python -m pytest -q
 
 bench: install
-	$(BIN)/stomach-unfold bench --output-dir docs/benchmark
+	$(BIN)/stomach-unfold bench --full-size --output-dir docs/benchmark
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info
