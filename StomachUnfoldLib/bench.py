@@ -351,7 +351,7 @@ def full_size_runs(out_dir: str, slices=(400, 500), profile: bool = True) -> dic
 
 
 def _plain_log_ticks(ax, axes="xy") -> None:
-    """Log axes labelled 2, 5, 10 ... instead of 2x10^0 (minor labels off)."""
+    """Log axes labelled 2, 5, 10 ... instead of 2x10^0 (every minor tick when the axis spans under a decade)."""
     from matplotlib.ticker import FuncFormatter
 
     def minor(axis):
