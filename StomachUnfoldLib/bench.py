@@ -198,13 +198,9 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         for g in ((4.2, 8.4) if quick else (2.8, 4.2, 5.6, 8.4, 11.2)):
             cases.append(Case(f"{src['_name']}/grid_mm={g}", src, {"grid_mm": g}, group="resolution"))
     if "peers" in parts:
-        try:
-            from . import peers  # noqa: F401
-            for src in shapes:
-                for m in ("cylindrical", "lscm"):
-                    cases.append(Case(f"{src['_name']}/{m}", src, {}, method=m, group="peers"))
-        except ImportError:
-            pass
+        for src in shapes:
+            for m in ("cylindrical", "lscm"):
+                cases.append(Case(f"{src['_name']}/{m}", src, {}, method=m, group="peers"))
     if "real" in parts and data_dir and os.path.isdir(data_dir):
         d = data_dir
         reals = [("real-01-3mm", {"real": os.path.join(d, "01_totalseg_example_ct_abdpelvis_3mm.nii.gz"),
@@ -368,6 +364,16 @@ def _plain_log_ticks(ax, axes="xy") -> None:
         axis.set_minor_formatter(minor(axis))
 
 
+def _save(fig, out_dir: str, name: str, made: list[str]) -> None:
+    """Lay out, write out_dir/name (PNG, 110 dpi), close the figure and list the name in ``made``."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, name), dpi=110)
+    plt.close(fig)
+    made.append(name)
+
+
 def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
     import matplotlib
 
@@ -423,10 +429,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
             ax.grid(alpha=0.3, which="both")
         fig.suptitle(f"Speed against accuracy on {', '.join(sorted(base)) or 'the phantom set'} "
                      "(lower left is better; blue: ours, orange: the paper's forces, green/red: peers)")
-        fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, "pareto.png"), dpi=110)
-        plt.close(fig)
-        made.append("pareto.png")
+        _save(fig, out_dir, "pareto.png", made)
     stab = [r for r in rows if r["group"] == "stability"]
     if stab:
         fig, ax = plt.subplots(figsize=(7, 4))
@@ -445,10 +448,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
         ax.legend()
         ax.grid(alpha=0.3)
         ax.set_title("Stability: implicit Newmark-beta against explicit integration")
-        fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, "stability.png"), dpi=110)
-        plt.close(fig)
-        made.append("stability.png")
+        _save(fig, out_dir, "stability.png", made)
     resr = [r for r in ok if r["group"] == "resolution"]
     if resr:
         fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
@@ -463,10 +463,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
             a.set_xlabel("cell size (mm)")
             a.grid(alpha=0.3)
         fig.suptitle(f"Model no more than the scene needs: {resr[0]['name'].split('/')[0]} against cell size")
-        fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, "resolution.png"), dpi=110)
-        plt.close(fig)
-        made.append("resolution.png")
+        _save(fig, out_dir, "resolution.png", made)
     scal = {g: [r for r in ok if r["group"] == g] for g in ("scaling-volume", "scaling-grid", "crop")}
     if any(scal.values()):
         fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
@@ -491,10 +488,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
             ax.grid(alpha=0.3, which="both")
             ax.legend(fontsize=8)
         fig.suptitle("Cost against size: volume, model resolution and crop")
-        fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, "scaling.png"), dpi=110)
-        plt.close(fig)
-        made.append("scaling.png")
+        _save(fig, out_dir, "scaling.png", made)
     if full:
         fig, ax = plt.subplots(figsize=(10, 2.8))
         colours = {}
@@ -512,10 +506,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
         ax.set_yticks(range(len(full)), [f"512x512x{n}" for n in sorted(full)])
         ax.set_xlabel("seconds (dotted: read + one resampling pass)")
         ax.set_title("Full-size CT: where the time goes")
-        fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, "full_size_stages.png"), dpi=110)
-        plt.close(fig)
-        made.append("full_size_stages.png")
+        _save(fig, out_dir, "full_size_stages.png", made)
     return made
 
 

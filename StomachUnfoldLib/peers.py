@@ -274,6 +274,14 @@ def _ray_exits(field: np.ndarray, level: float, crop: Volume, origins: np.ndarra
     return out
 
 
+def _prepare_peer(ct: Volume, cardia_lps, pylorus_lps, mask, wall_thickness_mm: float, prog) -> dict:
+    """prepare() on the first 40 % of a peer's progress, plus ``pixel_mm``: the in-plane voxel size (mm) it samples at."""
+    prep = prepare(ct, cardia_lps, pylorus_lps, mask=mask, wall_thickness_mm=wall_thickness_mm,
+                   progress=prog.sub("prepare", 0, 0.4))
+    prep["pixel_mm"] = float(np.sqrt(ct.spacing[0] * ct.spacing[1]))
+    return prep
+
+
 def cylindrical_unroll(ct: Volume, cardia_lps, pylorus_lps, mask=None, wall_thickness_mm: float = 4.0,
                        angular_samples: int | None = None, progress=None) -> PeerResult:
     """Cylindrical unrolling around the centreline (LPS mm in, unfolded Volume in mm): arc length -> i, angle -> j, depth -> k."""
@@ -282,11 +290,9 @@ def cylindrical_unroll(ct: Volume, cardia_lps, pylorus_lps, mask=None, wall_thic
     w = _check_common(ct, wall_thickness_mm)
     if angular_samples is not None and (int(angular_samples) != angular_samples or angular_samples < 8):
         raise InputError(f"angular_samples must be an integer >= 8, got {angular_samples}")
-    prep = prepare(ct, cardia_lps, pylorus_lps, mask=mask, wall_thickness_mm=w, progress=prog.sub("prepare", 0, 0.4))
-    seconds = dict(prep["seconds"])
-    warnings = list(prep["warnings"])
-    crop, lumen, cl, inc = prep["crop"], prep["lumen"], prep["centerline"], prep["incision"]
-    s = float(np.sqrt(ct.spacing[0] * ct.spacing[1]))
+    prep = _prepare_peer(ct, cardia_lps, pylorus_lps, mask, w, prog)
+    seconds, warnings = prep["seconds"], prep["warnings"]
+    crop, lumen, cl, inc, s = (prep[k] for k in ("crop", "lumen", "centerline", "incision", "pixel_mm"))
 
     # --- frames along the centreline, resampled every s mm of arc length ---------------------------------
     t = time.perf_counter()
@@ -688,11 +694,9 @@ def lscm_flatten(ct: Volume, cardia_lps, pylorus_lps, mask=None, wall_thickness_
     w = _check_common(ct, wall_thickness_mm)
     if boundary not in BOUNDARIES:
         raise InputError(f"boundary must be one of {', '.join(BOUNDARIES)}, got {boundary!r}")
-    prep = prepare(ct, cardia_lps, pylorus_lps, mask=mask, wall_thickness_mm=w, progress=prog.sub("prepare", 0, 0.4))
-    seconds = dict(prep["seconds"])
-    warnings = list(prep["warnings"])
-    crop, lumen, cl, inc = prep["crop"], prep["lumen"], prep["centerline"], prep["incision"]
-    s = float(np.sqrt(ct.spacing[0] * ct.spacing[1]))
+    prep = _prepare_peer(ct, cardia_lps, pylorus_lps, mask, w, prog)
+    seconds, warnings = prep["seconds"], prep["warnings"]
+    crop, lumen, cl, inc, s = (prep[k] for k in ("crop", "lumen", "centerline", "incision", "pixel_mm"))
 
     # --- surface mesh, trimmed at the centreline's end planes ---------------------------------------------
     t = time.perf_counter()
