@@ -232,9 +232,54 @@ def _centre_points(rc: _RayCaster, pts: np.ndarray, radius: np.ndarray, window_m
 
 def _snap_any(mask: np.ndarray, volume: Volume, p: np.ndarray, max_mm: float):
     """Nearest True voxel centre (LPS mm) of mask to p within max_mm, also for p off the grid; None if none."""
-    from .preprocessing import _nearest_true
+    from .preprocessing import nearest_true
 
-    return _nearest_true(mask, volume, p, max_mm)
+    return nearest_true(mask, volume, p, max_mm)
+
+
+def minimal_path(cost: np.ndarray, start, end, sampling=(1.0, 1.0, 1.0)):
+    """Minimal-cost 26-connected path start -> end (k, j, i) as skimage's MCP_Geometric: ((n, 3) int, cost) or (None, inf).
+
+    A step between neighbours a and b costs ``(cost[a] + cost[b]) / 2 * |step|`` (step length in the
+    ``sampling`` units, per array axis); voxels of infinite or negative cost are impassable. Dijkstra on
+    the sparse graph of the passable voxels (scipy.sparse.csgraph).
+    """
+    from itertools import product
+
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    cost = np.asarray(cost, float)
+    shape = cost.shape
+    start, end = tuple(int(x) for x in start), tuple(int(x) for x in end)
+    ok = np.isfinite(cost) & (cost >= 0)
+    if not (ok[start] and ok[end]):
+        return None, np.inf
+    node = np.full(shape, -1, np.int64)
+    n = int(np.count_nonzero(ok))
+    node[ok] = np.arange(n)
+    sp = np.asarray(sampling, float).reshape(3)
+    rows, cols, weights = [], [], []
+    for off in product((-1, 0, 1), repeat=3):
+        if off <= (0, 0, 0):  # each undirected edge once: the 13 offsets lexicographically after 0
+            continue
+        src = tuple(slice(max(0, -o), shape[a] - max(0, o)) for a, o in enumerate(off))
+        dst = tuple(slice(max(0, o), shape[a] - max(0, -o)) for a, o in enumerate(off))
+        a, b = node[src], node[dst]
+        m = (a >= 0) & (b >= 0)
+        rows.append(a[m])
+        cols.append(b[m])
+        weights.append((cost[src][m] + cost[dst][m]) * (0.5 * float(np.sqrt(np.sum((np.array(off) * sp) ** 2)))))
+    graph = coo_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+    i0, i1 = int(node[start]), int(node[end])
+    dist, pred = dijkstra(graph, directed=False, indices=i0, return_predecessors=True)
+    if not np.isfinite(dist[i1]):
+        return None, np.inf
+    chain = [i1]
+    while chain[-1] != i0:
+        chain.append(int(pred[chain[-1]]))
+    flat = np.flatnonzero(ok)[np.array(chain[::-1])]
+    return np.stack(np.unravel_index(flat, shape), axis=1), float(dist[i1])
 
 
 # ---------------------------------------------------------------------------------------------- main
@@ -282,9 +327,7 @@ def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lp
     every half voxel on the full-resolution lumen: the distance to the nearest non-lumen voxel centre
     they meet. This avoids a distance transform of the whole full-resolution lumen (seconds on a CT).
     """
-    from skimage.graph import MCP_Geometric
-
-    from .preprocessing import _ras_text, bounding_box
+    from .preprocessing import ras_text, bounding_box
 
     if not step_mm > 0:
         raise InputError(f"the centreline step must be positive, got {step_mm} mm")
@@ -299,7 +342,7 @@ def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lp
         if s is None:
             if not lumen.any():
                 raise AnatomyError("the stomach lumen is empty; check the points, the threshold or the mask")
-            raise PointError(f"the {name} point (RAS {_ras_text(p)} mm) is more than {max_snap_mm:g} mm from the "
+            raise PointError(f"the {name} point (RAS {ras_text(p)} mm) is more than {max_snap_mm:g} mm from the "
                              "stomach lumen; place it in the lumen or on the wall next to it")
         ends_lps.append(s)
     if np.linalg.norm(ends_lps[0] - ends_lps[1]) < 2.0 * step_mm:
@@ -328,10 +371,9 @@ def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lp
         if progress is not None:
             progress(0.2)
         cost = np.where(coarse, 1.0 / (dt / max(float(dt.max()), 1e-6) + 0.05) ** 2, np.inf)
-        mcp = MCP_Geometric(cost, sampling=tuple(csp[::-1]))
-        costs, _ = mcp.find_costs([cends[0]], [cends[1]])
-        if np.isfinite(costs[cends[1]]):
-            path = np.array(mcp.traceback(cends[1]), float)  # (k, j, i), cardia first
+        found, _ = minimal_path(cost, cends[0], cends[1], sampling=tuple(csp[::-1]))
+        if found is not None:
+            path = found.astype(float)  # (k, j, i), cardia first
             break
     if path is None:
         raise AnatomyError("the cardia and pylorus points are not connected through the stomach lumen (separate "

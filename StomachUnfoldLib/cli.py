@@ -9,7 +9,7 @@ import argparse
 import json
 import os
 import sys
-from dataclasses import fields
+import time
 
 import numpy as np
 
@@ -53,19 +53,36 @@ def _points_from_file(path: str):
                      "labelled 'cardia' and 'pylorus', or --cardia/--pylorus R,A,S")
 
 
-_PARAM_HELP = {
-    "grid_size": "cell size d in voxels (the paper's d; default: 5.6 mm cells, i.e. d = 8 at 0.7 mm)",
-    "grid_mm": "cell size in mm (overrides --grid-size; default 5.6)",
-    "kappa": "termination threshold |D(a-1)-D(a)| in mm", "incision": "incision side",
-    "wall_thickness_mm": "stomach wall thickness in mm", "air_threshold_hu": "air threshold in HU",
-    "output_spacing_mm": "unfolded volume spacing in mm (default: input in-plane spacing)",
-}
+def _bool(text: str) -> bool:
+    """Parse a command-line truth value (1/0, true/false, yes/no, on/off)."""
+    t = text.strip().lower()
+    if t in ("1", "true", "yes", "on"):
+        return True
+    if t in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+
+
+def add_parameter_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per parameter of ``params.parameter_specs`` (its type, default, choices and help), grouped by stage."""
+    from .methods import methods
+    from .params import parameter_specs
+
+    groups = {}
+    for spec in parameter_specs():
+        g = groups.get(spec.group)
+        if g is None:
+            g = groups[spec.group] = parser.add_argument_group(f"{spec.group or 'method'} parameters")
+        kind = _bool if spec.kind is bool else spec.kind
+        help_ = spec.help
+        if spec.name == "method":
+            help_ += ": " + "; ".join(f"{n} ({d})" for n, d in methods().items())
+        g.add_argument(spec.flag, dest=spec.name, type=kind, default=spec.default, choices=spec.choices,
+                       help=f"{help_} (default {spec.default})")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``stomach-unfold`` command."""
-    from .pipeline import UnfoldParameters
-
     ap = argparse.ArgumentParser(prog="stomach-unfold",
                                  description="Virtual unfolded views of the stomach from CT (Oda et al.).")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -83,19 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--landmarks", help=".mrk.json of points to map into the unfolded volume")
     u.add_argument("--series-uid", help="DICOM series to read when a folder holds several")
     u.add_argument("--quiet", action="store_true", help="no progress bar")
-    for f in fields(UnfoldParameters):
-        flag = "--" + f.name.replace("_", "-")
-        default = f.default
-        kind = type(default) if default is not None else (int if str(f.type).startswith("int") else float)
-        if kind is bool:
-            u.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes", "on"), default=default,
-                           help=f"{_PARAM_HELP.get(f.name, f.name)} (default {default})")
-        elif f.name == "incision":
-            u.add_argument(flag, choices=["greater", "lesser", "anterior", "posterior"], default=default,
-                           help="incision side (default greater curvature)")
-        else:
-            u.add_argument(flag, type=kind, default=default, help=f"{_PARAM_HELP.get(f.name, f.name)} "
-                                                                 f"(default {default})")
+    add_parameter_flags(u)
 
     p = sub.add_parser("phantom", help="write a synthetic CT of a gas-distended stomach with markers")
     p.add_argument("output", help="output volume path (e.g. phantom.nrrd); a .json and .mrk.json go beside it")
@@ -125,30 +130,40 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class _Bar:
-    """tqdm progress bar on stderr driven by the library's (stage, fraction) callback."""
+    """A text progress bar on stderr for the library's (stage, fraction) callback: redrawn in place on a terminal,
+    one plain line per stage (and every 25 %) when stderr is a file, so a log stays readable."""
 
-    def __init__(self, quiet: bool):
-        self.bar = None
-        if not quiet:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=1000, file=sys.stderr, bar_format="{desc:<18} {percentage:3.0f}%|{bar}| {elapsed}",
-                            leave=False, mininterval=0.25 if sys.stderr.isatty() else 2.0)
+    def __init__(self, quiet: bool, stream=None):
+        self.quiet, self.stream = quiet, stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.t0 = time.perf_counter()
+        self.stage, self.quarter, self.shown = None, -1, -1.0
 
     def __call__(self, stage: str, fraction: float):
-        if self.bar is not None:
-            n = int(fraction * 1000)
-            if stage != self.bar.desc or n - self.bar.n >= 10:
-                self.bar.set_description_str(stage, refresh=False)
-                self.bar.update(n - self.bar.n)
+        if self.quiet:
+            return
+        pct = int(100 * min(max(fraction, 0.0), 1.0))
+        t = time.perf_counter() - self.t0
+        if self.tty:
+            if stage != self.stage or pct - self.shown >= 1:
+                bar = "#" * (pct // 4)
+                self.stream.write(f"\r{stage:<18} {pct:3d}% |{bar:<25}| {t:5.1f} s")
+                self.stream.flush()
+                self.stage, self.shown = stage, pct
+        elif stage != self.stage or pct // 25 > self.quarter:
+            self.stream.write(f"{t:6.1f} s {pct:3d}% {stage}\n")
+            self.stream.flush()
+            self.stage, self.quarter = stage, pct // 25
 
     def close(self):
-        if self.bar is not None:
-            self.bar.close()
+        if not self.quiet and self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
 
 
 def _cmd_unfold(args) -> int:
     from .io import read_label_volume, read_markups_points, read_volume
+    from .params import parameter_specs
     from .pipeline import UnfoldParameters, unfold
 
     if args.points:
@@ -161,7 +176,7 @@ def _cmd_unfold(args) -> int:
         if not (args.cardia and args.pylorus):
             raise PointError("give both --cardia R,A,S and --pylorus R,A,S (mm, RAS), or --points file.mrk.json")
         cardia, pylorus = ras_to_lps(parse_point(args.cardia)), ras_to_lps(parse_point(args.pylorus))
-    params = UnfoldParameters(**{f.name: getattr(args, f.name) for f in fields(UnfoldParameters)})
+    params = UnfoldParameters(**{spec.name: getattr(args, spec.name) for spec in parameter_specs()})
     ct = read_volume(args.input, series_uid=args.series_uid)
     mask = read_label_volume(args.mask, ct, label_value=args.mask_label) if args.mask else None
     curve = None
@@ -176,15 +191,27 @@ def _cmd_unfold(args) -> int:
     finally:
         bar.close()
     r = result.report
-    print(f"unfolded in {r['seconds']['total']:.1f} s, {r['iterations']} iterations, "
-          f"{r['model']['hexahedra']} hexahedra -> {os.path.join(args.output_dir, 'unfolded.nrrd')}")
+    grade = f", grade {r.quality['grade']}" if r.quality else ""
+    print(f"unfolded by {r.method['name']} in {r.seconds['total']:.1f} s{grade} -> "
+          f"{os.path.join(args.output_dir, 'unfolded.nrrd')}")
     for w in r["warnings"]:
         print(f"warning: {w}", file=sys.stderr)
     return 0
 
 
+def _evaluation():
+    """The evaluation package (phantoms, benchmark), which a Slicer install does not have."""
+    try:
+        import StomachUnfoldEval
+    except ImportError:
+        raise InputError("the evaluation package StomachUnfoldEval is not installed; install the project from "
+                         "source (pip install -e .) to make phantoms and run the benchmark") from None
+    return StomachUnfoldEval
+
+
 def _cmd_phantom(args) -> int:
-    from .phantom import write_phantom
+    _evaluation()
+    from StomachUnfoldEval.phantom import write_phantom
 
     spacing = None
     if args.spacing:
@@ -198,7 +225,8 @@ def _cmd_phantom(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    from .bench import replot, run_benchmark
+    _evaluation()
+    from StomachUnfoldEval.bench import replot, run_benchmark
 
     if args.replot:
         made = replot(args.output_dir)

@@ -13,9 +13,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import InputError
-from .unfolded_volume import _degenerate, _edges, _plane_matrix, hex_to_tets
+from .unfolded_volume import barycentric_planes, degenerate_tets, hex_to_tets, tet_edges
 
-__all__ = ["Correspondence", "point_tet_distance"]
+__all__ = ["Correspondence", "point_tet_distance", "MapCorrespondence"]
 
 _INSIDE_TOL = 1e-9  # barycentric slack for "inside" (same as the unfolded volume's rasteriser)
 
@@ -62,8 +62,8 @@ def point_tet_distance(points: np.ndarray, corners: np.ndarray, lam: np.ndarray 
     points = np.asarray(points, float)
     corners = np.asarray(corners, float)
     if lam is None:
-        E = _edges(corners)
-        ok = ~_degenerate(E, np.linalg.det(E))
+        E = tet_edges(corners)
+        ok = ~degenerate_tets(E, np.linalg.det(E))
         inv = np.zeros_like(E)
         inv[ok] = np.linalg.inv(E[ok])
         l123 = np.einsum("nij,nj->ni", inv, points - corners[:, 0])
@@ -83,11 +83,11 @@ class _Locator:
         self.points = points
         self.tets = tets
         p = points[tets]  # (T,4,3)
-        E = _edges(p)
-        self.flat = _degenerate(E, np.linalg.det(E))
+        E = tet_edges(p)
+        self.flat = degenerate_tets(E, np.linalg.det(E))
         inv = np.zeros_like(E)
         inv[~self.flat] = np.linalg.inv(E[~self.flat])
-        self.B = _plane_matrix(p, inv)  # barycentric planes (T,4,4)
+        self.B = barycentric_planes(p, inv)  # barycentric planes (T,4,4)
         self.centroids = p.mean(axis=1)
         # any point inside tet t lies within radius[t] of its centroid
         self.radius = float(np.sqrt(((p - self.centroids[:, None]) ** 2).sum(axis=2)).max()) if len(p) else 0.0
@@ -321,6 +321,48 @@ class Correspondence:
         if not points:
             return {}
         keys = list(points)
+        arr = np.array([np.asarray(points[k], float).reshape(3) for k in keys])
+        mapped = (self.to_unfolded if direction == "to_unfolded" else self.to_original)(arr)
+        return {k: mapped[i] for i, k in enumerate(keys)}
+
+
+class MapCorrespondence:
+    """A correspondence given by two functions: CT LPS mm -> unfolded LPS mm and back ((N,3) arrays, NaN off the wall).
+
+    For methods whose map is analytic (a surface parameterisation sampled along normals) rather than a model's
+    tetrahedra; it answers like :class:`Correspondence` (``to_unfolded``, ``to_original``, ``map_landmarks``).
+    """
+
+    def __init__(self, to_unfolded, to_original):
+        self._fwd, self._inv = to_unfolded, to_original
+
+    def _call(self, fn, points_lps) -> np.ndarray:
+        pts = np.asarray(points_lps, float)
+        single = pts.ndim == 1
+        pts = np.atleast_2d(pts)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise InputError(f"points must be (N, 3) or (3,) LPS mm, got shape {np.shape(points_lps)}")
+        out = np.full(pts.shape, np.nan)
+        good = np.all(np.isfinite(pts), axis=1)
+        if good.any():
+            out[good] = fn(pts[good])
+        return out[0] if single else out
+
+    def to_unfolded(self, points_lps) -> np.ndarray:
+        """Map original-CT points (LPS mm, (N,3) or (3,)) into the unfolded volume's LPS frame; NaN off the wall."""
+        return self._call(self._fwd, points_lps)
+
+    def to_original(self, points_lps) -> np.ndarray:
+        """Map points of the unfolded volume (LPS mm, (N,3) or (3,)) back into the original CT; NaN off the wall."""
+        return self._call(self._inv, points_lps)
+
+    def map_landmarks(self, points: dict, direction: str = "to_unfolded") -> dict:
+        """Map named points {name: (3,) LPS mm}; ``direction`` is "to_unfolded" or "to_original"; NaN off the wall."""
+        if direction not in ("to_unfolded", "to_original"):
+            raise InputError(f'direction must be "to_unfolded" or "to_original", got {direction!r}')
+        keys = list(points)
+        if not keys:
+            return {}
         arr = np.array([np.asarray(points[k], float).reshape(3) for k in keys])
         mapped = (self.to_unfolded if direction == "to_unfolded" else self.to_original)(arr)
         return {k: mapped[i] for i, k in enumerate(keys)}

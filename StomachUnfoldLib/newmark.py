@@ -24,47 +24,42 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.linalg import splu
 
-from .errors import InputError, SimulationError
+from .errors import SimulationError
+from .params import SolverParameters
 from .unfolding_force import distance_metric
 
-__all__ = ["NewmarkParameters", "SimulationResult", "spring_laplacian", "spring_rotation_forces",
+__all__ = ["SpringSystem", "Pull", "SimulationResult", "spring_laplacian", "spring_rotation_forces",
            "NewmarkBeta", "simulate"]
 
 
 @dataclass
-class NewmarkParameters:
-    """Integration and model constants (unit mass per vertex on average, time in steps of ``time_step``)."""
+class SpringSystem:
+    """The masses and springs the solver moves: rest positions (LPS mm), springs (S,2), rest lengths (mm), masses.
 
-    beta: float = 0.25
-    gamma: float = 0.5
-    time_step: float = 1.0
-    spring_stiffness: float = 1.0
-    damping: float = 0.5           # dashpot coefficient per spring (relative velocity)
-    mass_damping: float = 0.2      # viscous damping per unit mass (absolute velocity)
-    unfolding_stiffness: float = 0.5
-    kappa: float = 0.5             # mm, termination threshold on |D(a-1) - D(a)|
-    max_iterations: int = 300
-    min_iterations: int = 5
-    inner_iterations: int = 2      # local/global sweeps per step
-    max_retries: int = 4           # step halvings on divergence
-    integrator: str = "newmark"    # "newmark" (implicit) or "explicit" (semi-implicit Euler, for comparison)
+    A :class:`~StomachUnfoldLib.wall_model.WallModel` has these attributes too and is passed as it is.
+    """
 
-    def validate(self) -> None:
-        """Raise InputError if a constant is out of its valid range."""
-        if not (0.0 < self.beta <= 0.5):
-            raise InputError(f"Newmark beta must be in (0, 0.5], got {self.beta}")
-        if not (0.0 < self.gamma <= 1.0):
-            raise InputError(f"Newmark gamma must be in (0, 1], got {self.gamma}")
-        for name in ("time_step", "spring_stiffness", "unfolding_stiffness", "kappa"):
-            if not (getattr(self, name) > 0 and np.isfinite(getattr(self, name))):
-                raise InputError(f"{name} must be a positive number, got {getattr(self, name)}")
-        for name in ("damping", "mass_damping"):
-            if not (getattr(self, name) >= 0 and np.isfinite(getattr(self, name))):
-                raise InputError(f"{name} must be zero or positive, got {getattr(self, name)}")
-        if self.max_iterations < 1 or self.inner_iterations < 1:
-            raise InputError("max_iterations and inner_iterations must be at least 1")
-        if self.integrator not in ("newmark", "explicit"):
-            raise InputError(f"integrator must be 'newmark' or 'explicit', got {self.integrator!r}")
+    vertices: np.ndarray
+    springs: np.ndarray
+    rest_length: np.ndarray
+    mass: np.ndarray
+
+
+@dataclass
+class Pull:
+    """Where the pulled vertices go: ids and destinations (LPS mm); optional plane frame, heights and sides.
+
+    :class:`~StomachUnfoldLib.unfolding_force.UnfoldingTargets` has these attributes too and is passed as it is.
+    ``frame`` (3x3, columns v1, v2, n), ``b`` (a point on the plane), ``heights`` (N, mm along n from the
+    plane) and ``side`` (+1/-1 per pulled vertex) enable the flattening pull and the guided destinations.
+    """
+
+    vertex_ids: np.ndarray
+    destinations: np.ndarray
+    frame: np.ndarray | None = None
+    b: np.ndarray | None = None
+    heights: np.ndarray | None = None
+    side: np.ndarray | None = None
 
 
 @dataclass
@@ -115,7 +110,7 @@ class NewmarkBeta:
     """
 
     def __init__(self, springs: np.ndarray, rest_length: np.ndarray, mass: np.ndarray,
-                 params: NewmarkParameters, target_stiffness: np.ndarray | None = None,
+                 params: SolverParameters, target_stiffness: np.ndarray | None = None,
                  spring_stiffness: np.ndarray | None = None):
         params.validate()
         self.p = params
@@ -173,25 +168,29 @@ class NewmarkBeta:
         return x1, v1, a1
 
 
-def simulate(rest: np.ndarray, springs, rest_length, mass, pulled_ids, targets,
-             params: NewmarkParameters | None = None, progress=None, frame=None, origin=None,
-             heights=None, flatten_stiffness: float = 0.0, ramp_iterations: int = 20,
-             pulled_side=None) -> SimulationResult:
+def simulate(system, pull, params: SolverParameters | None = None, progress=None) -> SimulationResult:
     """Run the unfolding: Newmark-beta steps until |D(a-1) - D(a)| <= kappa, the cap, or unrecoverable divergence.
 
-    Positions and targets are LPS mm. The pulled vertices feel ``unfolding_stiffness * (g - r)``.
-    With ``frame`` (3x3, columns v1, v2, n), ``origin`` (a point on the plane) and ``heights`` (N,
-    mm along n, relative to the plane), every vertex is also pulled along n toward its height with
-    ``flatten_stiffness``, the height target moving from the rest height to ``heights`` over the first
-    ``ramp_iterations`` iterations (this keeps the matrix constant: the pull acts on one axis of the frame).
-    With ``pulled_side`` (+1/-1 per pulled vertex, the side of the base line it goes to) the destinations
-    are guided during the ramp: each moves from the vertex's rest position to g along a half-turn about
-    an axis parallel to v1 that passes over the plane (+n first), the way a cut edge rotates when a tube is
-    unrolled with its inner surface toward +n; afterwards the destinations are the paper's g.
-    ``progress`` (a Progress or callable(fraction)) is called every step. If the cap is reached the
-    last state is returned with a warning.
+    ``system`` is a SpringSystem (or WallModel), ``pull`` a Pull (or UnfoldingTargets); positions and targets
+    are LPS mm. The pulled vertices feel ``unfolding_stiffness * (g - r)``. With the pull's ``frame``, ``b`` and
+    ``heights`` every vertex is also pulled along n toward its height with ``flattening_stiffness``, the height
+    target moving from the rest height to ``heights`` over the first ``ramp_iterations`` iterations (this keeps
+    the matrix constant: the pull acts on one axis of the frame). With the pull's ``side`` (+1/-1 per pulled
+    vertex, the side of the base line it goes to) the destinations are guided during the ramp: each moves from
+    the vertex's rest position to g along a half-turn about an axis parallel to v1 that passes over the plane
+    (+n first), the way a cut edge rotates when a tube is unrolled with its inner surface toward +n; afterwards
+    the destinations are the paper's g. ``progress`` (a Progress or callable(fraction)) is called every step.
+    If the cap is reached the last state is returned with a warning.
     """
-    params = params or NewmarkParameters()
+    params = params or SolverParameters()
+    return _run(system.vertices, system.springs, system.rest_length, system.mass, pull.vertex_ids,
+                pull.destinations, params, progress, getattr(pull, "frame", None), getattr(pull, "b", None),
+                getattr(pull, "heights", None), getattr(pull, "side", None))
+
+
+def _run(rest, springs, rest_length, mass, pulled_ids, targets, params, progress, frame, origin, heights,
+         pulled_side) -> SimulationResult:
+    flatten_stiffness, ramp_iterations = params.flattening_stiffness, int(params.ramp_iterations)
     t0 = time.perf_counter()
     rest = np.asarray(rest, float)
     pulled_ids = np.asarray(pulled_ids, np.int64)

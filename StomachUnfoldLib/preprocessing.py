@@ -77,7 +77,7 @@ def bounding_box(mask: np.ndarray, margin_vox=(0, 0, 0)) -> tuple[np.ndarray, np
     return lo_ijk, hi_ijk
 
 
-def _ras_text(p_lps) -> str:
+def ras_text(p_lps) -> str:
     """Point as RAS text (mm, 1 decimal) for messages shown to Slicer/command-line users."""
     return str(np.round(lps_to_ras(np.asarray(p_lps, float).reshape(3)), 1).tolist())
 
@@ -103,7 +103,7 @@ def _nearest_in_box(mask: np.ndarray, volume: Volume, p: np.ndarray, radius_mm: 
     return pts[best], float(d[best])
 
 
-def _nearest_true(mask: np.ndarray, volume: Volume, p: np.ndarray, max_distance_mm: float):
+def nearest_true(mask: np.ndarray, volume: Volume, p: np.ndarray, max_distance_mm: float):
     """Nearest True voxel centre (LPS mm) within max_distance_mm, else None; the point may lie off the grid.
 
     The voxel containing the point is tried first (its centre is the nearest voxel centre), then boxes
@@ -149,7 +149,7 @@ def _check_inside(volume: Volume, p: np.ndarray, name: str) -> None:
     """Raise PointError naming the point and the volume bounds (LPS mm) if p lies outside the grid."""
     if not volume.contains_lps(p[None])[0]:
         lo, hi = volume.bounds_lps()
-        raise PointError(f"the {name} point (LPS {np.round(p, 1).tolist()} mm, RAS {_ras_text(p)} mm) lies "
+        raise PointError(f"the {name} point (LPS {np.round(p, 1).tolist()} mm, RAS {ras_text(p)} mm) lies "
                          f"outside the volume, whose LPS bounds are {np.round(lo, 1).tolist()} to "
                          f"{np.round(hi, 1).tolist()} mm; place the point inside the CT")
 
@@ -188,10 +188,10 @@ def snap_to_region(mask: np.ndarray, volume: Volume, point_lps, max_distance_mm:
     if not np.all(np.isfinite(p)):
         raise PointError(f"the {name} point has non-finite coordinates {p.tolist()}; give it in mm")
     _check_inside(volume, p, name)
-    hit = _nearest_true(mask, volume, p, max_distance_mm)
+    hit = nearest_true(mask, volume, p, max_distance_mm)
     if hit is None:
         raise PointError(f"no region voxel lies within {max_distance_mm:g} mm of the {name} point (RAS "
-                         f"{_ras_text(p)} mm); {_nearest_distance_text(mask, volume, p, max_distance_mm)}; "
+                         f"{ras_text(p)} mm); {_nearest_distance_text(mask, volume, p, max_distance_mm)}; "
                          "move the point into the stomach lumen")
     return hit
 
@@ -256,6 +256,41 @@ def _touches_faces(mask: np.ndarray, axes) -> bool:
     return False
 
 
+def flood_fill(image: np.ndarray, seed) -> np.ndarray:
+    """Bool mask of the voxels 6-connected to ``seed`` (k, j, i) holding its value, as skimage's ``flood(image, seed, connectivity=1)``.
+
+    SimpleITK's ConnectedThreshold on a box around the seed that doubles on each side the region touches
+    until the region touches no inner face of the box, so only about the region's bounding box is visited.
+    """
+    import SimpleITK as sitk
+
+    image = np.asarray(image, bool)
+    shape = np.array(image.shape)
+    s = np.array([int(x) for x in seed])
+    if s.shape != (3,) or np.any(s < 0) or np.any(s >= shape):
+        raise InputError(f"flood seed {s.tolist()} lies outside the array of shape {tuple(shape)}")
+    value = int(image[tuple(s)])
+    lo, hi = np.maximum(s - 32, 0), np.minimum(s + 33, shape)
+    while True:
+        sub = np.ascontiguousarray(image[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], dtype=np.uint8)
+        out = sitk.ConnectedThreshold(sitk.GetImageFromArray(sub), seedList=[tuple(int(x) for x in (s - lo)[::-1])],
+                                      lower=value, upper=value, replaceValue=1,
+                                      connectivity=sitk.ConnectedThresholdImageFilter.FaceConnectivity)
+        reg = sitk.GetArrayFromImage(out).view(bool)
+        grown = False
+        for a in range(3):
+            n = int(hi[a] - lo[a])
+            if lo[a] > 0 and np.take(reg, 0, axis=a).any():
+                lo[a], grown = max(0, lo[a] - n), True
+            if hi[a] < shape[a] and np.take(reg, n - 1, axis=a).any():
+                hi[a], grown = min(int(shape[a]), hi[a] + n), True
+        if not grown:
+            break
+    full = np.zeros(image.shape, bool)
+    full[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = reg
+    return full
+
+
 def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0, max_snap_mm: float = 20.0,
                progress=None) -> tuple[np.ndarray, dict]:
     """Stomach air region (bool mask on ct's grid): voxels below threshold_hu (HU) 6-connected to the points' air.
@@ -291,8 +326,6 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
         If no air lies near a point (pass a stomach mask), or the air reached touches the side faces of the
         volume (outside air) or is larger than ``MAX_STOMACH_ML`` (lung, bowel).
     """
-    from skimage.morphology import flood
-
     pts = {"cardia": np.asarray(cardia_lps, float).reshape(3), "pylorus": np.asarray(pylorus_lps, float).reshape(3)}
     for name, p in pts.items():
         _check_inside(ct, p, name)
@@ -301,9 +334,9 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
         progress(0.1)
     seeds = {}
     for name, p in pts.items():
-        s = _nearest_true(air, ct, p, max_snap_mm)
+        s = nearest_true(air, ct, p, max_snap_mm)
         if s is None:
-            raise AnatomyError(f"the stomach has no gas near the {name} point (RAS {_ras_text(p)} mm): no voxel "
+            raise AnatomyError(f"the stomach has no gas near the {name} point (RAS {ras_text(p)} mm): no voxel "
                                f"below {threshold_hu:g} HU within {max_snap_mm:g} mm "
                                f"({_nearest_distance_text(air, ct, p, max_snap_mm)}); pass a stomach label "
                                "with --mask, or place the point in the gas-filled lumen")
@@ -317,13 +350,13 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
         kji = _voxel(ct, s)
         if region is not None and region[kji]:
             continue
-        comp = flood(air, kji, connectivity=1)
+        comp = flood_fill(air, kji)
         problem = _air_problem(comp, sides, voxel_ml)
         if problem:
             inside = [_voxel(ct, q) for q in seeds.values() if comp[_voxel(ct, q)]]
             cut, neck = _cut_leaks(comp, ct, inside, sides, voxel_ml)
             if cut is None:
-                raise AnatomyError(f"the air reached from the {name} point (RAS {_ras_text(pts[name])} mm) {problem}: "
+                raise AnatomyError(f"the air reached from the {name} point (RAS {ras_text(pts[name])} mm) {problem}: "
                                    "the point is probably in the air outside the body or in lung, or the stomach "
                                    "gas leaks into the bowel through an opening too wide to cut; move the point "
                                    "into the stomach, or pass a stomach label with --mask")
@@ -363,8 +396,6 @@ def lumen_from_mask(mask: np.ndarray, ct: Volume, cardia_lps, pylorus_lps,
     PointError
         If a point lies outside the volume or more than ``max_snap_mm`` (mm) from the mask.
     """
-    from skimage.morphology import flood
-
     mask = np.asarray(mask, bool)
     if mask.shape != ct.array.shape:
         raise InputError(f"the stomach mask has shape {mask.shape} but the CT {ct.array.shape}; resample the "
@@ -385,7 +416,7 @@ def lumen_from_mask(mask: np.ndarray, ct: Volume, cardia_lps, pylorus_lps,
         kji = (k - lo[2], j - lo[1], i - lo[0])
         if reg[kji]:
             continue
-        reg |= flood(sub, kji, connectivity=1)
+        reg |= flood_fill(sub, kji)
         n_comp += 1
     region = np.zeros_like(mask)
     region[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]] = reg

@@ -53,12 +53,12 @@ def hex_to_tets(hexes: np.ndarray):
     return tets, np.repeat(np.arange(len(hexes)), 6)
 
 
-def _edges(p: np.ndarray) -> np.ndarray:
+def tet_edges(p: np.ndarray) -> np.ndarray:
     """Edge matrices (T,3,3) whose columns are p1-p0, p2-p0, p3-p0 for tetrahedron corners p (T,4,3)."""
     return np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)
 
 
-def _degenerate(E: np.ndarray, det: np.ndarray) -> np.ndarray:
+def degenerate_tets(E: np.ndarray, det: np.ndarray) -> np.ndarray:
     """True where the tetrahedron with edge matrix E (T,3,3) and determinant det is flat (relative test)."""
     mean_edge = np.sqrt((E ** 2).sum(axis=1)).mean(axis=1)
     return ~(np.abs(det) > DEGENERATE_RTOL * mean_edge ** 3) | ~np.isfinite(det)
@@ -66,7 +66,7 @@ def _degenerate(E: np.ndarray, det: np.ndarray) -> np.ndarray:
 
 def tet_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Signed volumes (T,) of tetrahedra (units of ``points`` cubed, e.g. mm^3); positive for right-handed corners."""
-    return np.linalg.det(_edges(np.asarray(points, float)[tets])) / 6.0
+    return np.linalg.det(tet_edges(np.asarray(points, float)[tets])) / 6.0
 
 
 def tet_inverse(points: np.ndarray, tets: np.ndarray):
@@ -76,9 +76,9 @@ def tet_inverse(points: np.ndarray, tets: np.ndarray):
     :func:`tet_affine`'s ``degenerate`` flag.
     """
     p = np.asarray(points, float)[tets]  # (T,4,3)
-    E = _edges(p)
+    E = tet_edges(p)
     det = np.linalg.det(E)
-    ok = ~_degenerate(E, det)
+    ok = ~degenerate_tets(E, det)
     inv = np.zeros_like(E)
     inv[ok] = np.linalg.inv(E[ok])
     return p[:, 0], inv, det / 6.0
@@ -90,7 +90,7 @@ def barycentric(q: np.ndarray, p0: np.ndarray, inv: np.ndarray) -> np.ndarray:
     return np.concatenate([1.0 - l123.sum(axis=1, keepdims=True), l123], axis=1)
 
 
-def _plane_matrix(p: np.ndarray, inv: np.ndarray) -> np.ndarray:
+def barycentric_planes(p: np.ndarray, inv: np.ndarray) -> np.ndarray:
     """(T,4,4) matrices B with barycentric ``lam = B @ (x, y, z, 1)`` for corners p (T,4,3) and inverse edges."""
     B = np.zeros((len(p), 4, 4))
     B[:, 1:, :3] = inv
@@ -125,9 +125,9 @@ class TetAffine:
 
 def _affine_between(src: np.ndarray, dst: np.ndarray):
     """(T,3,4) affine maps taking tetrahedra corners src (T,4,3) onto dst (T,4,3), NaN where src is flat."""
-    Es, Ed = _edges(src), _edges(dst)
+    Es, Ed = tet_edges(src), tet_edges(dst)
     det = np.linalg.det(Es)
-    bad = _degenerate(Es, det)
+    bad = degenerate_tets(Es, det)
     M = np.full((len(src), 3, 4), np.nan)
     if (~bad).any():
         A = Ed[~bad] @ np.linalg.inv(Es[~bad])
@@ -305,8 +305,8 @@ def label_map(grid: UnfoldedGrid, deformed: np.ndarray, tets: np.ndarray, chunk_
     lo = np.maximum(lo, 0)
     hi = np.minimum(hi, np.array([ni - 1, nj - 1, nk - 1]))
     ext = np.maximum(hi - lo + 1, 0)
-    E = _edges(pts)
-    valid = (ext.prod(axis=1) > 0) & ~_degenerate(E, np.linalg.det(E))
+    E = tet_edges(pts)
+    valid = (ext.prod(axis=1) > 0) & ~degenerate_tets(E, np.linalg.det(E))
     # nearest the viewer last: process in increasing centroid k and keep the highest rank per voxel
     cand = np.flatnonzero(valid)
     order = cand[np.argsort(pts[cand, :, 2].mean(axis=1), kind="stable")].astype(np.int64)
@@ -314,7 +314,7 @@ def label_map(grid: UnfoldedGrid, deformed: np.ndarray, tets: np.ndarray, chunk_
     strict = np.zeros(nk * nj * ni, np.uint8)
     if len(order):
         inv = np.linalg.inv(E[order])
-        B = _plane_matrix(pts[order] - lo[order, None, :], inv)  # (V,4,4), x measured from the box corner
+        B = barycentric_planes(pts[order] - lo[order, None, :], inv)  # (V,4,4), x measured from the box corner
         col = [[np.ascontiguousarray(B[:, m, c]) for c in range(4)] for m in range(4)]
         nudge = [B[:, m, :3] @ _NUDGE for m in range(4)]
         lo_o = [np.ascontiguousarray(lo[order, c]) for c in range(3)]
@@ -425,12 +425,12 @@ def build_unfolded_volume(ct: Volume, rest: np.ndarray, deformed: np.ndarray, he
     # per tetrahedron: output index -> CT continuous index, exact affine (rest corners in CT index @ planes)
     q = grid.lps_to_index(deformed)
     p = q[tets]
-    E = _edges(p)
+    E = tet_edges(p)
     det_q = np.linalg.det(E)
-    ok = ~_degenerate(E, det_q)
+    ok = ~degenerate_tets(E, det_q)
     inv = np.zeros_like(E)
     inv[ok] = np.linalg.inv(E[ok])
-    B = _plane_matrix(p, inv)  # barycentric planes in output index space
+    B = barycentric_planes(p, inv)  # barycentric planes in output index space
     R = ct.lps_to_index(rest)[tets].transpose(0, 2, 1)  # (T,3,4): columns = rest corners in CT index
     M = R @ B  # (T,3,4)
     cols = [[np.ascontiguousarray(M[:, r, c]) for c in range(4)] for r in range(3)]
@@ -488,11 +488,11 @@ def build_unfolded_volume(ct: Volume, rest: np.ndarray, deformed: np.ndarray, he
 
     rest_vol = tet_volumes(rest, tets)
     def_vol = tet_volumes(deformed, tets)
-    E_d = _edges(deformed[tets])
-    degenerate = _degenerate(E_d, np.linalg.det(E_d))
+    E_d = tet_edges(deformed[tets])
+    degenerate = degenerate_tets(E_d, np.linalg.det(E_d))
     del E_d
-    E_r = _edges(rest[tets])
-    rest_ok = ~_degenerate(E_r, np.linalg.det(E_r))
+    E_r = tet_edges(rest[tets])
+    rest_ok = ~degenerate_tets(E_r, np.linalg.det(E_r))
     del E_r
     inverted = rest_ok & ~degenerate & (np.sign(rest_vol) != np.sign(def_vol))
     info = {"filled_voxels": int(filled), "overlap_voxels": int(overlap),

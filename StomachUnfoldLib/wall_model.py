@@ -245,11 +245,24 @@ def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int
                      removed_fragments=removed_frag)
 
 
+def inner_surface_triangles(model) -> np.ndarray:
+    """Triangles (T,3 vertex ids) of the model's inner surface: cell faces whose four vertices are all in S_vi."""
+    tris = []
+    for _, local in _FACES:
+        q = model.hexes[:, list(local)]
+        ok = model.inner[q].all(axis=1)
+        q = q[ok]
+        tris.append(q[:, [0, 1, 2]])
+        tris.append(q[:, [0, 2, 3]])
+    t = np.vstack(tris)
+    return np.unique(np.sort(t, axis=1), axis=0)
+
+
 def model_to_vtk(vertices_lps: np.ndarray, hexes: np.ndarray, frame: str = "LPS"):
-    """vtkUnstructuredGrid of VTK_HEXAHEDRON cells from vertices in mm (LPS, or RAS with frame="RAS")."""
+    """vtkUnstructuredGrid of the cells (8 ids: VTK_HEXAHEDRON, 3: VTK_TRIANGLE) from vertices in mm (LPS, or RAS)."""
     from vtkmodules.util import numpy_support as ns
     from vtkmodules.vtkCommonCore import vtkPoints
-    from vtkmodules.vtkCommonDataModel import VTK_HEXAHEDRON, vtkCellArray, vtkUnstructuredGrid
+    from vtkmodules.vtkCommonDataModel import VTK_HEXAHEDRON, VTK_TRIANGLE, vtkCellArray, vtkUnstructuredGrid
 
     pts = np.asarray(vertices_lps, float).copy()
     if frame.upper() == "RAS":
@@ -259,15 +272,16 @@ def model_to_vtk(vertices_lps: np.ndarray, hexes: np.ndarray, frame: str = "LPS"
     vp.SetData(ns.numpy_to_vtk(np.ascontiguousarray(pts), deep=True))
     grid.SetPoints(vp)
     h = np.asarray(hexes, np.int64)
+    per = h.shape[1] if h.ndim == 2 else 8
     cells = vtkCellArray()
-    offsets = ns.numpy_to_vtkIdTypeArray(np.arange(0, 8 * len(h) + 1, 8, dtype=np.int64), deep=True)
+    offsets = ns.numpy_to_vtkIdTypeArray(np.arange(0, per * len(h) + 1, per, dtype=np.int64), deep=True)
     cells.SetData(offsets, ns.numpy_to_vtkIdTypeArray(np.ascontiguousarray(h.ravel()), deep=True))
-    grid.SetCells(VTK_HEXAHEDRON, cells)
+    grid.SetCells(VTK_HEXAHEDRON if per == 8 else VTK_TRIANGLE, cells)
     return grid
 
 
 def write_vtu(vertices_lps: np.ndarray, hexes: np.ndarray, path: str) -> None:
-    """Write the hexahedral model (vertices in LPS mm, as Slicer's model files default to) to a .vtu file."""
+    """Write a model (hexahedra or triangles; vertices in LPS mm, as Slicer's model files default to) to a .vtu file."""
     from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridWriter  # the submodule alone: `import vtk` costs 0.7 s
 
     writer = vtkXMLUnstructuredGridWriter()

@@ -17,8 +17,8 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
-from .errors import InputError
-from .geometry import Volume, lps_to_ras
+from StomachUnfoldLib.errors import InputError
+from StomachUnfoldLib.geometry import Volume, lps_to_ras
 
 __all__ = ["SHAPES", "SIZES", "stomach_centerline", "make_phantom", "write_phantom"]
 
@@ -239,7 +239,7 @@ def _paint_spheres(vol: Volume, centres, radius_mm: float, value: int, only_abov
 
 def write_phantom(path, **kwargs):
     """Write a phantom volume, its truth JSON (same stem + .json) and a cardia/pylorus .mrk.json; returns (path, json)."""
-    from .io import atomic_write_text, write_markups_fiducials, write_volume
+    from StomachUnfoldLib.io import atomic_write_text, write_markups_fiducials, write_volume
 
     vol, truth = make_phantom(**kwargs)
     path = os.fspath(path)

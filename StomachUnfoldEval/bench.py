@@ -15,12 +15,10 @@ import traceback
 
 import numpy as np
 
-from .errors import InputError, StomachUnfoldError
+from StomachUnfoldLib.errors import InputError, StomachUnfoldError
 
-__all__ = ["Case", "phantom_set", "run_case", "run_cases", "run_benchmark", "replot", "paper_forces", "KAPPAS"]
+__all__ = ["Case", "phantom_set", "run_case", "run_cases", "run_benchmark", "replot", "KAPPAS"]
 
-#: The paper's forces alone (no guided destinations, no flattening force, the weaker pull of our first version).
-paper_forces = {"ramp_iterations": 0, "flattening_stiffness": 0.0, "unfolding_stiffness": 0.5}
 KAPPAS = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
 
 
@@ -49,7 +47,7 @@ def _wall(src: dict) -> float:
 def _load(source: dict):
     """CT Volume, cardia/pylorus (LPS), optional mask and marker truth for a case's source."""
     if "real" in source:
-        from .io import read_label_volume, read_volume
+        from StomachUnfoldLib.io import read_label_volume, read_volume
 
         ct = read_volume(source["real"])
         mask = read_label_volume(source["mask"], ct, label_value=source.get("label")) if source.get("mask") else None
@@ -76,8 +74,10 @@ def png_name(case_name: str) -> str:
 
 
 def run_case(case: dict, png_dir: str | None = None) -> dict:
-    """Run one case (our method or a peer) and judge it; any documented failure becomes a row with the error."""
-    from .quality import marker_report, overlap_fraction, quality_metrics
+    """Run one case (any method, through the one front end) and judge it; a documented failure becomes a row."""
+    from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
+
+    from .markers import marker_metrics
 
     row = {k: case[k] for k in ("name", "method", "group", "params")}
     row["source"] = {k: v for k, v in case["source"].items() if not k.startswith("_")}
@@ -86,40 +86,27 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
         ct, cardia, pylorus, mask, markers = _load(case["source"])
         row["load_seconds"] = time.perf_counter() - t
         row["size_ijk"] = list(ct.size)
-        if case["method"] == "massspring":
-            from .pipeline import UnfoldParameters, unfold
-
-            params = {"wall_thickness_mm": _wall(case["source"]), **case["params"]}
-            res = unfold(ct, cardia, pylorus, UnfoldParameters(**params), mask=mask)
-            q = res.report["quality"]
-            if markers:
-                q = dict(q, markers=quality_metrics(res, markers)["markers"])
-            row["crop_voxels"] = res.report["input"]["crop_voxels"]
-            row.update(ok=True, seconds=res.report["seconds"]["total"], stage_seconds=res.report["seconds"],
-                       iterations=res.report["iterations"], model=res.report["model"], quality=q,
-                       peak_memory_mb=res.report["peak_memory_mb"], warnings=res.report["warnings"],
-                       converged=res.report["simulation"]["converged"])
-            vol = res.unfolded
-        else:
-            from . import peers
-
-            fn = {"cylindrical": peers.cylindrical_unroll, "lscm": peers.lscm_flatten}[case["method"]]
-            pr = fn(ct, cardia, pylorus, mask=mask, wall_thickness_mm=_wall(case["source"]), **case["params"])
-            vol = pr.unfolded
-            q = {"overlap_area_fraction": overlap_fraction(vol), **pr.quality}
-            if markers:
-                mapped = {k: pr.to_unfolded(np.asarray(v, float)[None])[0] for k, v in markers.items()}
-                rep = marker_report(vol, mapped)
-                q["markers"] = {"seen": rep["n_seen"], "total": rep["n_total"]}
-            row.update(ok=True, seconds=pr.seconds, quality=q)
+        params = {"wall_thickness_mm": _wall(case["source"]), **case["params"], "method": case["method"]}
+        res = unfold(ct, cardia, pylorus, UnfoldParameters(**params), mask=mask)
+        rep = res.report
+        q = dict(rep["quality"])
         if markers:
-            row["markers_seen"] = row["quality"]["markers"]["seen"]
-            row["markers_total"] = row["quality"]["markers"]["total"]
+            q["markers"] = marker_metrics(res, markers)
+        sim = rep["method"].get("simulation", {})
+        row.update(ok=True, seconds=rep["seconds"]["total"], stage_seconds=rep["seconds"], quality=q,
+                   crop_voxels=rep["input"]["crop_voxels"], peak_memory_mb=rep["peak_memory_mb"],
+                   warnings=rep["warnings"], method_report={k: v for k, v in rep["method"].items()
+                                                            if k not in ("simulation", "description")})
+        if sim:
+            row.update(iterations=sim["iterations"], converged=sim["converged"], model=rep["method"]["model"])
+        if markers:
+            row["markers_seen"] = q["markers"]["seen"]
+            row["markers_total"] = q["markers"]["total"]
         if png_dir:
-            from .view import render_view
+            from StomachUnfoldLib.view import render_view
 
             os.makedirs(png_dir, exist_ok=True)
-            render_view(vol, os.path.join(png_dir, png_name(case["name"])))
+            render_view(res.unfolded, os.path.join(png_dir, png_name(case["name"])))
     except StomachUnfoldError as e:
         row.update(ok=False, error=f"{type(e).__name__}: {e}")
     except Exception as e:  # a bug is data here too, with its traceback, so a sweep finishes
@@ -162,12 +149,12 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
     if "shapes" in parts:
         for src in shapes:
             cases.append(Case(src["_name"], src, {}, group="shapes"))
-            cases.append(Case(src["_name"] + "/paper-forces", src, {**paper_forces}, group="shapes-paper"))
+            cases.append(Case(src["_name"] + "/paper-forces", src, {}, method="paper", group="shapes-paper"))
     if "kappa" in parts:
         for k in (KAPPAS if not quick else [0.2, 1.0]):
             for src in shapes:
                 cases.append(Case(f"{src['_name']}/kappa={k}", src, {"kappa": k}, group="kappa"))
-                cases.append(Case(f"{src['_name']}/kappa={k}/paper", src, {"kappa": k, **paper_forces},
+                cases.append(Case(f"{src['_name']}/kappa={k}/paper", src, {"kappa": k}, method="paper",
                                   group="kappa-paper"))
     sweep_src = [s for s in shapes if s["_name"].split("-")[0] in ("j", "twisted", "bent")][:3]
     if "sweep" in parts:
@@ -268,7 +255,7 @@ def floor_seconds(ct_path: str) -> dict:
 
 def write_full_phantom(path: str, slices: int = 500) -> dict:
     """Write the 512 x 512 x ``slices`` J phantom at 0.7 mm to ``path``; returns its truth (LPS/RAS mm)."""
-    from .io import write_volume
+    from StomachUnfoldLib.io import write_volume
     from .phantom import make_phantom
 
     ct, truth = make_phantom("j", "full", full_slices=slices)
@@ -290,9 +277,9 @@ def full_size_run(path: str, truth: dict, out_dir: str, profile: bool = False) -
     import shutil
     import tempfile
 
-    from .io import read_volume
-    from .pipeline import UnfoldParameters, unfold
-    from .quality import marker_metrics
+    from StomachUnfoldLib.io import read_volume
+    from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
+    from .markers import marker_metrics
 
     floor = floor_seconds(path)
     out = tempfile.mkdtemp(prefix="su-full-out-")
@@ -320,8 +307,8 @@ def full_size_run(path: str, truth: dict, out_dir: str, profile: bool = False) -
         return {"size_ijk": list(vol.size), "pipeline_s": total, "read_volume_s": read_s, "write_outputs_s": write_s,
                 "stage_seconds": res.report["seconds"], **floor, "ratio_to_floor": total / floor["floor_s"],
                 "peak_memory_mb": peak, "grade": q["grade"], "visible_fraction": q["visible_fraction"],
-                "markers_seen": mk["seen"], "markers_total": mk["total"], "model": res.report["model"],
-                "profiled": profile, "iterations": res.report["iterations"]}
+                "markers_seen": mk["seen"], "markers_total": mk["total"], "model": res.report["method"]["model"],
+                "profiled": profile, "iterations": res.report["method"]["simulation"]["iterations"]}
     finally:
         shutil.rmtree(out, ignore_errors=True)
 
@@ -391,7 +378,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
         cfg = {}
         for r in pts:
             label = r["name"].split("/", 1)[1] if "/" in r["name"] else "default"
-            if r["method"] != "massspring":
+            if r["method"] not in ("massspring", "paper"):
                 label = r["method"]
             cfg.setdefault(label, []).append(r)
         colour = {"cylindrical": "tab:green", "lscm": "tab:red", "paper-forces": "tab:orange"}

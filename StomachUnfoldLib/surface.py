@@ -1,0 +1,628 @@
+"""Surfaces and profiles shared by the surface-based methods: the inner wall's iso-surface, cutting, conformal maps,
+rasterising a flat map and sampling the CT along the wall's normals. All coordinates are LPS mm.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from scipy.spatial import cKDTree
+
+from .errors import AnatomyError, SimulationError
+from .geometry import Volume
+from .progress import Progress
+
+INSIDE_MM = 2.0         # how far into the lumen (mm) each depth profile starts
+CLEARANCE_MM = 2.0      # profile length beyond the wall thickness (mm)
+SURFACE_SIGMA_VOX = 1.0  # blur of the inner-wall field (voxels)
+
+
+def unit(v, eps=1e-12):
+    """Vectors (..., 3) scaled to unit length (zero vectors stay near zero)."""
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), eps)
+
+
+def perpendicular(v, t):
+    """The part of vectors v perpendicular to unit vectors t (row-wise)."""
+    return v - np.sum(v * t, axis=-1, keepdims=True) * t
+
+
+def sample_profiles(crop: Volume, surf: np.ndarray, normal: np.ndarray, depths: np.ndarray,
+                     lumen: np.ndarray | None, batch: int = 4_000_000) -> np.ndarray:
+    """CT HU (float32, (N, D)) at ``surf + depth * normal`` (LPS mm); lumen samples cleared to -1024 if given."""
+    n, d = len(surf), len(depths)
+    out = np.empty((n, d), np.float32)
+    rows = max(1, batch // max(d, 1))
+    for a in range(0, n, rows):
+        b = min(n, a + rows)
+        p = surf[a:b, None, :] + depths[None, :, None] * normal[a:b, None, :]
+        v = crop.sample(p.reshape(-1, 3), order=1, cval=-1024.0)
+        if lumen is not None:
+            ijk = np.rint(crop.lps_to_index(p.reshape(-1, 3))).astype(np.int64)
+            size = np.array(crop.size)
+            ins = np.all((ijk >= 0) & (ijk < size), axis=1)
+            ijk = np.clip(ijk, 0, size - 1)
+            v[ins & lumen[ijk[:, 2], ijk[:, 1], ijk[:, 0]]] = -1024.0
+        out[a:b] = v.reshape(b - a, d)
+    return out
+
+
+def depth_axis(s: float, wall_thickness_mm: float):
+    """Depth samples (mm along the outward normal, from the lumen side down) and the k index of depth 0."""
+    n_in = int(np.ceil(INSIDE_MM / s))
+    n_out = int(np.ceil((wall_thickness_mm + CLEARANCE_MM) / s))
+    nk = n_in + n_out + 1
+    k = np.arange(nk)
+    depths = (n_out - k) * s  # k = 0 deepest, k = nk - 1 inside the lumen
+    return depths, n_out, nk
+
+
+def smooth_free_ends(points: np.ndarray, sigma_pts: float) -> np.ndarray:
+    """Gaussian smoothing of a polyline (sigma in points), padded by point reflection at the ends, ends not pinned."""
+    n = len(points)
+    if n < 4 or sigma_pts <= 0:
+        return points.copy()
+    pad = min(n - 1, int(np.ceil(3 * sigma_pts)))
+    ext = np.concatenate([2 * points[0] - points[pad:0:-1], points, 2 * points[-1] - points[-2:-2 - pad:-1]])
+    return ndimage.gaussian_filter1d(ext, sigma_pts, axis=0, mode="nearest")[pad:pad + n]
+
+
+def smooth_tangents(points: np.ndarray, arc: np.ndarray, sigma_mm: float = 4.0, end_mm: float = 10.0) -> np.ndarray:
+    """Unit tangents (K,3) smoothed along the curve; each end tangent is the chord over its last ``end_mm`` mm.
+
+    The centreline's own end tangent is one 2 mm step to a snapped end point and can tilt by 20-30 degrees,
+    which would tilt the first and last cross-sections and the trimming planes.
+    """
+    t = np.gradient(points, axis=0)
+    m = int(np.clip(np.searchsorted(arc, end_mm), 1, len(points) - 1))
+    t[0] = points[m] - points[0]
+    t[-1] = points[-1] - points[-1 - m]
+    t = unit(t)
+    step = float(arc[-1] / max(len(arc) - 1, 1))
+    t = ndimage.gaussian_filter1d(t, max(0.5, sigma_mm / max(step, 1e-6)), axis=0, mode="nearest")
+    return unit(t)
+
+
+def surface_field(crop: Volume, lumen: np.ndarray, mask_given: bool) -> tuple[np.ndarray, float]:
+    """Float field on the crop grid whose ``level`` iso-surface is the inner wall (below the level = lumen side).
+
+    With gas: the CT's HU in a one-voxel band around the lumen (+200 HU elsewhere, so no other gas counts), blurred
+    by SURFACE_SIGMA_VOX voxels, level -500 HU (the lumen's air threshold): a smooth sub-voxel surface. With a stomach
+    mask (no gas): the mask blurred the same way and scaled to -1000..0, level -500.
+    """
+    if mask_given:
+        return (-1000.0 * ndimage.gaussian_filter(lumen.astype(np.float32), SURFACE_SIGMA_VOX)).astype(np.float32), -500.0
+    band = ndimage.binary_dilation(lumen, structure=np.ones((3, 3, 3), bool))
+    field = np.where(band, crop.array.astype(np.float32), np.float32(200.0))
+    # a little blur (1 voxel) as a CT's partial volume gives: voxel staircases would tilt the sampled surface
+    field = ndimage.gaussian_filter(field, SURFACE_SIGMA_VOX)
+    return field, -500.0
+
+
+def to_int16(a: np.ndarray) -> np.ndarray:
+    """HU values rounded and clipped to the int16 CT range [-1024, 3071]."""
+    return np.clip(np.rint(a), -1024, 3071).astype(np.int16)
+
+
+def rotation_minimising_frame(points: np.ndarray, tangents: np.ndarray, r0: np.ndarray) -> np.ndarray:
+    """Normals (K,3) of the double-reflection rotation-minimising frame (Wang et al. 2008) starting at r0."""
+    r = np.empty_like(points)
+    r[0] = unit(perpendicular(r0, tangents[0]))
+    for n in range(len(points) - 1):
+        v1 = points[n + 1] - points[n]
+        c1 = float(v1 @ v1)
+        if c1 < 1e-12:
+            r[n + 1] = r[n]
+            continue
+        rl = r[n] - (2.0 / c1) * (v1 @ r[n]) * v1
+        tl = tangents[n] - (2.0 / c1) * (v1 @ tangents[n]) * v1
+        v2 = tangents[n + 1] - tl
+        c2 = float(v2 @ v2)
+        r[n + 1] = rl - (2.0 / c2) * (v2 @ rl) * v2 if c2 > 1e-12 else rl
+        r[n + 1] = unit(perpendicular(r[n + 1], tangents[n + 1]))
+    return r
+
+
+def ray_exits(field: np.ndarray, level: float, crop: Volume, origins: np.ndarray, dirs: np.ndarray, r_max: float,
+               step: float, prog: Progress, batch: int = 4_000_000) -> np.ndarray:
+    """Distance (mm) along each ray (origins (N,3), dirs (N,3)) to where the field first reaches ``level``; NaN if never."""
+    t = np.arange(0.0, r_max + step, step)
+    out = np.full(len(origins), np.nan)
+    rows = max(1, batch // len(t))
+    inv = np.linalg.inv(crop.direction * crop.spacing[None, :])
+    for a in range(0, len(origins), rows):
+        b = min(len(origins), a + rows)
+        o = (origins[a:b] - crop.origin) @ inv.T
+        d = dirs[a:b] @ inv.T
+        ijk = o[:, None, :] + t[None, :, None] * d[:, None, :]
+        v = ndimage.map_coordinates(field, ijk.reshape(-1, 3)[:, ::-1].T, order=1, mode="constant", cval=1e4,
+                                    output=np.float32, prefilter=False).reshape(b - a, len(t))
+        v[:, 0] = np.minimum(v[:, 0], level - 1.0)
+        out_ = v >= level
+        first = np.argmax(out_, axis=1)
+        has = out_.any(axis=1)
+        f = np.clip(first, 1, len(t) - 1)
+        v0 = v[np.arange(b - a), f - 1]
+        v1 = v[np.arange(b - a), f]
+        frac = np.clip((level - v0) / np.maximum(v1 - v0, 1e-6), 0.0, 1.0)
+        out[a:b] = np.where(has, t[f - 1] + frac * step, np.nan)
+        prog(b / len(origins))
+    return out
+
+
+def inner_surface(lumen: np.ndarray, crop: Volume, max_vertices: int, mask_given: bool = False):
+    """Marching-cubes surface (LPS mm vertices, triangles) of the inner wall (see surface_field), <= ~max_vertices."""
+    from skimage.measure import marching_cubes
+
+    field, level = surface_field(crop, lumen, mask_given)
+    sm = np.pad(field, 2, constant_values=np.float32(1e4 if not mask_given else 0.0))
+    edge = lumen & ~ndimage.binary_erosion(lumen, border_value=1)
+    n_edge = int(edge.sum())
+    step = max(1, int(np.ceil(np.sqrt(n_edge / float(max_vertices)))))
+    verts, faces, _, _ = marching_cubes(sm, level=level, step_size=step, allow_degenerate=False)
+    ijk = verts[:, ::-1] - 2.0
+    return crop.index_to_lps(ijk), faces.astype(np.int64), step
+
+
+def vertex_normals(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Area-weighted vertex normals and face normals (both unit, along the triangles' winding)."""
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for c in range(3):
+        np.add.at(vn, f[:, c], fn)
+    return unit(vn), unit(fn)
+
+
+def largest_component(nv: int, f: np.ndarray) -> np.ndarray:
+    """Bool mask of the triangles of the largest edge-connected component."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(nv, nv))
+    _, lab = connected_components(g, directed=False)
+    fl = lab[f[:, 0]]
+    big = np.bincount(fl).argmax()
+    return fl == big
+
+
+def compact(v: np.ndarray, f: np.ndarray, *extra):
+    """Drop vertices no triangle uses: (v, f renumbered, *extra per-vertex arrays) for the used vertices."""
+    used = np.unique(f)
+    remap = np.full(len(v), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return (v[used], remap[f]) + tuple(x[used] for x in extra)
+
+
+def lscm_matrix(v: np.ndarray, f: np.ndarray):
+    """Real (2F, 2V) matrix A of the LSCM energy |A [u; v]|^2 (Levy et al. 2002), unknowns u then v."""
+    from scipy.sparse import csr_matrix
+
+    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    e1 = p1 - p0
+    n = np.cross(e1, p2 - p0)
+    dT = np.linalg.norm(n, axis=1)
+    ok = dT > 1e-10
+    f, p0, p1, p2, e1, n, dT = f[ok], p0[ok], p1[ok], p2[ok], e1[ok], n[ok], dT[ok]
+    x1 = np.linalg.norm(e1, axis=1)
+    u = e1 / x1[:, None]
+    w = np.cross(n / dT[:, None], u)
+    q = np.stack([np.zeros((len(f), 2)), np.stack([x1, np.zeros_like(x1)], 1),
+                  np.stack([np.sum((p2 - p0) * u, 1), np.sum((p2 - p0) * w, 1)], 1)], 1)   # (F,3,2)
+    W = np.stack([q[:, 2] - q[:, 1], q[:, 0] - q[:, 2], q[:, 1] - q[:, 0]], 1) / np.sqrt(dT)[:, None, None]
+    nv, nf = len(v), len(f)
+    rows = np.repeat(np.arange(nf), 3)
+    cols = f.reshape(-1)
+    mr, mi = W[..., 0].reshape(-1), W[..., 1].reshape(-1)
+    # real form of |M U|^2 with U = u + i v: [[Mr, -Mi], [Mi, Mr]] @ [u; v]
+    A = csr_matrix((np.concatenate([mr, -mi, mi, mr]),
+                    (np.concatenate([rows, rows, rows + nf, rows + nf]),
+                     np.concatenate([cols, cols + nv, cols, cols + nv]))), shape=(2 * nf, 2 * nv))
+    return A
+
+
+def lscm(v: np.ndarray, f: np.ndarray, pins: np.ndarray, pin_uv: np.ndarray) -> np.ndarray:
+    """Least Squares Conformal Map (Levy et al. 2002) of a disc mesh: (V,2) coordinates with pinned vertices."""
+    from scipy.sparse.linalg import spsolve
+
+    nv = len(v)
+    A = lscm_matrix(v, f)
+    pinned = np.zeros(2 * nv, bool)
+    pinned[np.concatenate([pins, pins + nv])] = True
+    xp = np.concatenate([pin_uv[:, 0], pin_uv[:, 1]])
+    Af, Ap = A[:, ~pinned], A[:, pinned]
+    rhs = -(Af.T @ (Ap @ xp))
+    sol = spsolve((Af.T @ Af).tocsc(), rhs)
+    if not np.all(np.isfinite(sol)):
+        raise SimulationError("the conformal map of the surface could not be solved (singular system); the surface "
+                              "mesh is probably broken")
+    x = np.zeros(2 * nv)
+    x[~pinned] = sol
+    x[pinned] = xp
+    return np.stack([x[:nv], x[nv:]], 1)
+
+
+def spectral_conformal(v: np.ndarray, f: np.ndarray, boundary: np.ndarray) -> np.ndarray:
+    """Free-boundary spectral conformal map (Mullen et al. 2008): smallest non-trivial LSCM eigenvector, (V,2)."""
+    from scipy.sparse import diags, identity
+    from scipy.sparse.linalg import LinearOperator, eigsh, splu
+
+    nv = len(v)
+    A = lscm_matrix(v, f)
+    M = (A.T @ A).tocsc()
+    eps = 1e-8 * float(M.diagonal().mean())
+    lu = splu((M + eps * identity(2 * nv)).tocsc())
+    b = np.zeros(nv)
+    b[boundary] = 1.0
+    B = diags(np.concatenate([b, b])).tocsc()
+    op = LinearOperator(M.shape, matvec=lu.solve, dtype=float)
+    x0 = np.random.default_rng(0).normal(size=2 * nv)
+    lam, vec = eigsh(M, k=6, M=B, sigma=0.0, which="LM", OPinv=op, v0=x0, tol=1e-8)
+    # drop the constant maps (zero energy), keep the smallest non-trivial (a double eigenvalue: U and iU)
+    cands = []
+    for ix in np.argsort(lam):
+        y = vec[:, ix]
+        u, w = y[:nv] - (b @ y[:nv]) / b.sum(), y[nv:] - (b @ y[nv:]) / b.sum()
+        spread = np.sqrt((b @ u ** 2 + b @ w ** 2) / b.sum())
+        if spread > 1e-3 * np.sqrt((b @ y[:nv] ** 2 + b @ y[nv:] ** 2) / b.sum()) and lam[ix] > 1e-9:
+            cands.append(ix)
+    if not cands:
+        raise SimulationError("the spectral conformal map found no non-trivial map; the surface mesh is probably broken")
+    x = vec[:, cands[0]]
+    if not np.all(np.isfinite(x)):
+        raise SimulationError("the spectral conformal map of the surface could not be solved; the mesh is probably broken")
+    return np.stack([x[:nv], x[nv:]], 1)
+
+
+def tube_conformal(v: np.ndarray, f: np.ndarray, partner: np.ndarray, end_flag: np.ndarray, pin: int) -> np.ndarray:
+    """LSCM energy minimised with the openings on lines u = 0 (cardia) and u = 1 (pylorus) and the seam glued periodically.
+
+    ``partner[c]`` is the original of seam copy ``c`` (-1 otherwise): u(c) = u(partner), v(c) = v(partner) + P with
+    the period P unknown; v is pinned at vertex ``pin``. This is the conformal map of the tube (an annulus) onto a
+    rectangle, as conformal colon flattening does (Hong et al. 2006); returns (V,2).
+    """
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.linalg import spsolve
+
+    nv = len(v)
+    A = lscm_matrix(v, f)
+    base = np.where(partner >= 0, partner, np.arange(nv))
+    pin_b = base[pin]
+    fixed_u = end_flag[base] > 0
+    x0 = np.zeros(2 * nv)
+    x0[:nv] = np.where(end_flag[base] == 2, 1.0, 0.0)
+    # columns: u of free originals, v of originals except the pin, then the period P
+    free_u_orig = (partner < 0) & ~fixed_u
+    col_u = np.full(nv, -1, np.int64)
+    col_u[free_u_orig] = np.arange(free_u_orig.sum())
+    nu = int(free_u_orig.sum())
+    free_v_orig = (partner < 0) & (np.arange(nv) != pin_b)
+    col_v = np.full(nv, -1, np.int64)
+    col_v[free_v_orig] = nu + np.arange(free_v_orig.sum())
+    n_y = nu + int(free_v_orig.sum()) + 1
+    rows, cols = [], []
+    cu = col_u[base]
+    ok = cu >= 0
+    rows.append(np.flatnonzero(ok)); cols.append(cu[ok])
+    cv = col_v[base]
+    ok = cv >= 0
+    rows.append(nv + np.flatnonzero(ok)); cols.append(cv[ok])
+    cp = np.flatnonzero(partner >= 0)
+    rows.append(nv + cp); cols.append(np.full(len(cp), n_y - 1))
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    S = csr_matrix((np.ones(len(r)), (r, c)), shape=(2 * nv, n_y))
+    AS = A @ S
+    y = spsolve((AS.T @ AS).tocsc(), -(AS.T @ (A @ x0)))
+    if not np.all(np.isfinite(y)):
+        raise SimulationError("the conformal map of the tube could not be solved (singular system); the surface mesh "
+                              "is probably broken")
+    x = S @ y + x0
+    return np.stack([x[:nv], x[nv:]], 1)
+
+
+def signed_area_2d(uv: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Signed area (mm^2) of each triangle f of a flat map uv (V,2); positive when counter-clockwise."""
+    a, b, c = uv[f[:, 0]], uv[f[:, 1]], uv[f[:, 2]]
+    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+
+
+def rasterise(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float, prog: Progress,
+               batch: int = 2_000_000):
+    """Per pixel (j, i) of a grid with pixel centres at (i*s, j*s) mm: covering triangle id (-1 none), barycentrics."""
+    nj, ni = shape_ji
+    tri = np.full(nj * ni, -1, np.int64)
+    bary = np.zeros((nj * ni, 3))
+    hits = np.zeros(nj * ni, np.int32)
+    P = uv[f] / s                                             # (F,3,2) in pixel units
+    lo = np.ceil(P.min(1) - 1e-9).astype(int)
+    hi = np.floor(P.max(1) + 1e-9).astype(int)
+    size = np.maximum(hi - lo + 1, 0)                         # (F,2) pixels per axis in each bbox
+    key = np.maximum(size[:, 0], size[:, 1])
+    order = np.argsort(key, kind="stable")
+    done = 0
+    for b in np.unique(key):
+        if b <= 0:
+            done += int((key == b).sum())
+            continue
+        ids = order[key[order] == b]
+        off = np.stack(np.meshgrid(np.arange(b), np.arange(b), indexing="ij"), -1).reshape(-1, 2)  # (b*b, 2)
+        per = max(1, batch // (b * b))
+        for a in range(0, len(ids), per):
+            t_ids = ids[a:a + per]
+            pix = lo[t_ids][:, None, :] + off[None]          # (n, b*b, 2) integer (i, j)
+            tp = P[t_ids]
+            v0 = tp[:, 1] - tp[:, 0]
+            v1 = tp[:, 2] - tp[:, 0]
+            den = v0[:, 0] * v1[:, 1] - v0[:, 1] * v1[:, 0]
+            good_t = np.abs(den) > 1e-12
+            den = np.where(good_t, den, 1.0)
+            d = pix - tp[:, None, 0]
+            l1 = (d[..., 0] * v1[:, None, 1] - d[..., 1] * v1[:, None, 0]) / den[:, None]
+            l2 = (v0[:, None, 0] * d[..., 1] - v0[:, None, 1] * d[..., 0]) / den[:, None]
+            l0 = 1.0 - l1 - l2
+            eps = -1e-7
+            inside = (l0 >= eps) & (l1 >= eps) & (l2 >= eps) & good_t[:, None]
+            inside &= (pix[..., 0] >= 0) & (pix[..., 0] < ni) & (pix[..., 1] >= 0) & (pix[..., 1] < nj)
+            tt, kk = np.nonzero(inside)
+            lin = pix[tt, kk, 1] * ni + pix[tt, kk, 0]
+            np.add.at(hits, lin, 1)
+            tri[lin] = t_ids[tt]
+            bary[lin] = np.stack([l0[tt, kk], l1[tt, kk], l2[tt, kk]], 1)
+        done += len(ids)
+        prog(done / len(f))
+    return tri.reshape(nj, ni), bary.reshape(nj, ni, 3), hits.reshape(nj, ni)
+
+
+@dataclass
+class CutSurface:
+    """The inner wall's surface (LPS mm) trimmed at the openings and cut open along the incision into a disc.
+
+    ``near`` is each vertex's nearest point of the dense centreline ``Pd``; ``end_flag`` 1 on the cardia
+    opening, 2 on the pylorus opening; ``is_copy`` marks the seam's duplicated vertices and ``partner`` their
+    originals (-1 elsewhere); ``theta`` the angle about the centreline from the incision (radians).
+    """
+
+    v: np.ndarray
+    f: np.ndarray
+    vn: np.ndarray
+    near: np.ndarray
+    theta: np.ndarray
+    is_copy: np.ndarray
+    end_flag: np.ndarray
+    partner: np.ndarray
+    boundary_edges: np.ndarray
+    Pd: np.ndarray
+    info: dict
+
+
+def cut_surface(prep, max_vertices: int = 20000, warnings: list | None = None) -> CutSurface:
+    """Iso-surface of the prepared lumen's inner wall, trimmed at the centreline's end planes, cut along the incision."""
+    warnings = [] if warnings is None else warnings
+    crop, lumen, cl, inc = prep.crop, prep.lumen, prep.centerline, prep.incision
+    # --- surface mesh, trimmed at the centreline's end planes ---------------------------------------------
+    v, f, mc_step = inner_surface(lumen, crop, max_vertices, prep.mask_given)
+    n_mc = len(v)
+    P = np.asarray(cl.points_lps, float)
+    # dense centreline (0.5 mm) with tangents and incision directions, for the cut angle of each vertex
+    arc = cl.arclength_mm
+    a_d = np.linspace(0.0, arc[-1], max(3, int(np.ceil(arc[-1] / 0.5)) + 1))
+    Pd = np.stack([np.interp(a_d, arc, P[:, c]) for c in range(3)], 1)
+    Ts = smooth_tangents(P, arc)
+    Td = unit(np.stack([np.interp(a_d, arc, Ts[:, c]) for c in range(3)], 1))
+    Id = unit(perpendicular(np.stack([np.interp(a_d, arc, inc.directions[:, c]) for c in range(3)], 1), Td))
+    _, near = cKDTree(Pd).query(v)
+    t0, t1 = Ts[0], Ts[-1]
+    # beyond an end plane, near that end (a nearest-point test alone leaves a slanted rim of the cap)
+    r_end = float(np.max(cl.radius_mm)) + 5.0
+    beyond = (((a_d[near] < r_end) & ((v - P[0]) @ t0 < 0))
+              | ((a_d[near] > arc[-1] - r_end) & ((v - P[-1]) @ t1 > 0)))
+    keep = ~beyond[f].any(axis=1)
+    f = f[keep]
+    if len(f) < 100:
+        raise AnatomyError("the lumen surface between the cardia and pylorus has almost no triangles; check the points")
+    f = f[largest_component(len(v), f)]
+    v, f, near = compact(v, f, near)
+    vn, fn = vertex_normals(v, f)
+    # outward (lumen -> wall) orientation, decided for the whole mesh: away from the centreline for most vertices
+    radial = v - Pd[near]
+    if np.mean(np.sum(vn * radial, 1) > 0) < 0.5:
+        f = f[:, ::-1]
+        vn, fn = -vn, -fn
+
+    # --- cut along the incision line: duplicate the low-angle vertices of triangles straddling theta = 0 ----
+    e1 = Id[near]
+    e2 = np.cross(Td[near], e1)
+    rad = perpendicular(radial, Td[near])
+    # the two openings: boundary vertices of the trimmed (uncut) tube, by their position along the centreline
+    e_all = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    ue0, cnt0 = np.unique(e_all, axis=0, return_counts=True)
+    open_v = np.unique(ue0[cnt0 == 1])
+    end_flag = np.zeros(len(v), np.int8)
+    end_flag[open_v[near[open_v] < 0.5 * len(Pd)]] = 1   # cardia opening
+    end_flag[open_v[near[open_v] >= 0.5 * len(Pd)]] = 2  # pylorus opening
+    theta = np.mod(np.arctan2(np.sum(rad * e2, 1), np.sum(rad * e1, 1)), 2 * np.pi)
+    th_f = theta[f]
+    straddle = (th_f.max(1) - th_f.min(1)) > np.pi
+    low = straddle[:, None] & (th_f < np.pi)
+    dup_src = np.unique(f[low])
+    new_id = np.full(len(v), -1, np.int64)
+    new_id[dup_src] = len(v) + np.arange(len(dup_src))
+    f = f.copy()
+    f[low] = new_id[f[low]]
+    v = np.concatenate([v, v[dup_src]])
+    vn = np.concatenate([vn, vn[dup_src]])
+    near = np.concatenate([near, near[dup_src]])
+    theta = np.concatenate([theta, theta[dup_src] + 2 * np.pi])
+    end_flag = np.concatenate([end_flag, end_flag[dup_src]])
+    is_copy = np.zeros(len(v), bool)
+    is_copy[len(v) - len(dup_src):] = True
+    partner = np.concatenate([np.arange(len(v) - len(dup_src)), dup_src])
+    used = np.zeros(len(v), bool)
+    used[np.unique(f)] = True
+    remap = np.full(len(v), -1, np.int64)
+    remap[used] = np.arange(used.sum())
+    partner = np.where(used[partner], remap[partner], -1)
+    v, f, vn, near, theta, is_copy, end_flag, partner = compact(v, f, vn, near, theta, is_copy, end_flag, partner)
+    partner[~is_copy] = -1                               # only copies point to their original
+    # topology: a disc has Euler characteristic 1 and a single boundary loop
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    ue, cnt = np.unique(edges, axis=0, return_counts=True)
+    euler = len(v) - len(ue) + len(f)
+    bnd = ue[cnt == 1]
+    if euler != 1:
+        warnings.append(f"the cut surface is not a topological disc (Euler characteristic {euler}); the flat map may "
+                        "fold or tear")
+    if len(dup_src) == 0:
+        raise AnatomyError("the incision line does not cross the lumen surface; the surface cannot be cut open")
+    info = {"marching_cubes_vertices": n_mc, "marching_cubes_step": mc_step, "vertices": int(len(v)),
+            "triangles": int(len(f)), "seam_vertices": int(len(dup_src)), "euler_characteristic": int(euler),
+            "boundary_edges": int(len(bnd))}
+    return CutSurface(v, f, vn, near, theta, is_copy, end_flag, partner, bnd, Pd, info)
+
+
+def orient_and_scale(uv: np.ndarray, cut: CutSurface, s: float) -> tuple[np.ndarray, float, float]:
+    """Turn a flat map (V,2) so the mucosa faces +k, the cardia->pylorus axis runs along +i and the area is the 3D one.
+
+    Returns (uv in mm with one pixel ``s`` of margin, fraction of flipped triangles, surface area in mm^2).
+    """
+    v, f, vn, near = cut.v, cut.f, cut.vn, cut.near
+    bv = np.unique(cut.boundary_edges)
+    uv = np.array(uv, float)
+    # orientation: k must point into the lumen (the viewer's side), i.e. (i, j, k) right-handed with k = -outward
+    sa = signed_area_2d(uv, f)
+    n3 = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    inward = -np.sum(n3 * (vn[f[:, 0]] + vn[f[:, 1]] + vn[f[:, 2]]), 1)
+    if np.sum(np.sign(sa) == np.sign(inward)) < 0.5 * len(f):
+        uv[:, 1] *= -1.0
+        sa = -sa
+    # rotate: cardia-end boundary -> pylorus-end boundary along +i; scale: total area as in 3D
+    end_a = bv[near[bv] <= np.percentile(near[bv], 10)]
+    end_b = bv[near[bv] >= np.percentile(near[bv], 90)]
+    axis = uv[end_b].mean(0) - uv[end_a].mean(0)
+    ang = np.arctan2(axis[1], axis[0])
+    R = np.array([[np.cos(ang), np.sin(ang)], [-np.sin(ang), np.cos(ang)]])
+    uv = uv @ R.T
+    area3 = 0.5 * np.linalg.norm(n3, axis=1).sum()
+    area2 = abs(sa.sum())
+    uv *= np.sqrt(area3 / max(area2, 1e-12))
+    flipped = float(np.mean(np.sign(signed_area_2d(uv, f)) != np.sign(inward)))
+    uv = uv - uv.min(0) + s  # one pixel of margin
+    return uv, flipped, float(area3)
+
+
+def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None):
+    """Rasterise a flat map (uv mm) of a CutSurface and sample the CT along the normals into the unfolded Volume.
+
+    Returns (Volume (HU, k toward the viewer), to_unfolded, to_original, Mesh, info); the maps take and give
+    (N,3) LPS mm (NaN off the wall).
+    """
+    from .methods import Mesh
+
+    progress = progress or (lambda fraction: None)
+    v, f, vn = cut.v, cut.f, cut.vn
+    crop, lumen, s, w = prep.crop, prep.lumen, prep.pixel_mm, prep.params.wall_thickness_mm
+    # --- rasterise and sample the CT along the normals -------------------------------------------------------
+    ni = int(np.ceil(uv[:, 0].max() / s)) + 2
+    nj = int(np.ceil(uv[:, 1].max() / s)) + 2
+    if ni * nj > 25_000_000:
+        raise SimulationError(f"the flattened surface spans {ni} x {nj} pixels: the conformal map degenerated")
+    tri, bary, hits = rasterise(uv, f, (nj, ni), s, progress)
+    covered = tri >= 0
+    depths, k0, nk = depth_axis(s, w)
+    tt = tri[covered]
+    bb = bary[covered]
+    surf = np.einsum("nc,ncx->nx", bb, v[f[tt]])
+    nrm = unit(np.einsum("nc,ncx->nx", bb, vn[f[tt]]))
+    prof = sample_profiles(crop, surf, nrm, depths, lumen if prep.mask_given else None)
+    arr = np.full((nk, nj, ni), -1024.0, np.float32)
+    jj, ii = np.nonzero(covered)
+    arr[:, jj, ii] = prof.T
+    vol = Volume(to_int16(arr), np.full(3, s), np.zeros(3), np.eye(3))
+    to_unfolded, to_original = _flat_maps(v, f, vn, uv, tri, bary, s, k0, w)
+    mesh = Mesh(v, np.concatenate([uv, np.full((len(uv), 1), k0 * s)], 1), f, "triangle", f)
+    info = {"size_ij": [ni, nj], "depth_samples_k": nk, "spacing_mm": s,
+            "param_overlap_pixel_fraction": float((hits > 1).sum() / max(int(covered.sum()), 1))}
+    return vol, to_unfolded, to_original, mesh, info
+
+
+def _flat_maps(v, f, vn, uv, tri, bary, s, k0, w):
+    """CT LPS mm -> unfolded LPS mm through the surface's nearest triangles, and back through the raster."""
+    nj, ni = tri.shape
+    # --- map from the CT ------------------------------------------------------------------------------------
+    tree = cKDTree(v)
+    order = np.argsort(np.concatenate([f[:, 0], f[:, 1], f[:, 2]]), kind="stable")
+    vt_face = np.tile(np.arange(len(f)), 3)[order]
+    vt_start = np.searchsorted(np.concatenate([f[:, 0], f[:, 1], f[:, 2]])[order], np.arange(len(v) + 1))
+    deg = np.diff(vt_start)
+    maxdeg = int(deg.max())
+    inc_tris = np.full((len(v), maxdeg), -1, np.int64)
+    for c in range(maxdeg):
+        has = deg > c
+        inc_tris[has, c] = vt_face[vt_start[:-1][has] + c]
+    max_dist = w + CLEARANCE_MM + 6.0
+
+    def to_unfolded(points_lps) -> np.ndarray:
+        """(N,3) LPS mm of the CT -> (N,3) LPS mm of the unfolded volume (NaN where unmapped)."""
+        p = np.asarray(points_lps, float).reshape(-1, 3)
+        out = np.full((len(p), 3), np.nan)
+        if len(p) == 0:
+            return out
+        dist, vi = tree.query(p)
+        cand = inc_tris[vi]                                   # (n, maxdeg)
+        valid = cand >= 0
+        cf = f[np.where(valid, cand, 0)]                      # (n, maxdeg, 3)
+        a, b, c = v[cf[..., 0]], v[cf[..., 1]], v[cf[..., 2]]
+        nrm_t = np.cross(b - a, c - a)
+        nn = unit(nrm_t)
+        q = p[:, None, :] - np.sum((p[:, None, :] - a) * nn, -1, keepdims=True) * nn     # projection on the plane
+        v0, v1, v2 = b - a, c - a, q - a
+        d00, d01, d11 = np.sum(v0 * v0, -1), np.sum(v0 * v1, -1), np.sum(v1 * v1, -1)
+        d20, d21 = np.sum(v2 * v0, -1), np.sum(v2 * v1, -1)
+        den = np.where(np.abs(d00 * d11 - d01 ** 2) > 1e-12, d00 * d11 - d01 ** 2, 1.0)
+        l1 = (d11 * d20 - d01 * d21) / den
+        l2 = (d00 * d21 - d01 * d20) / den
+        lam = np.stack([1 - l1 - l2, l1, l2], -1)
+        score = np.where(valid, lam.min(-1), -np.inf)
+        best = np.argmax(score, axis=1)
+        r = np.arange(len(p))
+        lb = np.clip(lam[r, best], 0.0, 1.0)
+        lb /= np.maximum(lb.sum(1, keepdims=True), 1e-12)
+        fb = cf[r, best]
+        uvp = np.einsum("nc,ncx->nx", lb, uv[fb])
+        sp = np.einsum("nc,ncx->nx", lb, v[fb])
+        nb = unit(np.einsum("nc,ncx->nx", lb, vn[fb]))
+        depth = np.sum((p - sp) * nb, 1)
+        fk = k0 - depth / s
+        res = np.stack([uvp[:, 0], uvp[:, 1], fk * s], 1)
+        res[dist > max_dist] = np.nan
+        return res
+
+    def to_original(points_lps) -> np.ndarray:
+        """(N,3) LPS mm of the unfolded volume -> (N,3) LPS mm of the CT (NaN outside the flattened surface)."""
+        q = np.asarray(points_lps, float).reshape(-1, 3)
+        out = np.full((len(q), 3), np.nan)
+        ii = np.rint(q[:, 0] / s).astype(np.int64)
+        jj = np.rint(q[:, 1] / s).astype(np.int64)
+        ok = (ii >= 0) & (ii < ni) & (jj >= 0) & (jj < nj)
+        t = np.full(len(q), -1, np.int64)
+        t[ok] = tri[jj[ok], ii[ok]]
+        ok &= t >= 0
+        if not ok.any():
+            return out
+        fb = f[t[ok]]
+        a, b, c = uv[fb[:, 0]], uv[fb[:, 1]], uv[fb[:, 2]]
+        p = q[ok, :2]
+        den = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+        den = np.where(np.abs(den) > 1e-12, den, 1.0)
+        l1 = ((p[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (p[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])) / den
+        l2 = ((b[:, 0] - a[:, 0]) * (p[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (p[:, 0] - a[:, 0])) / den
+        lam = np.stack([1 - l1 - l2, l1, l2], 1)
+        sp = np.einsum("nc,ncx->nx", lam, v[fb])
+        nb = unit(np.einsum("nc,ncx->nx", lam, vn[fb]))
+        depth = (k0 - q[ok, 2] / s) * s
+        out[ok] = sp + depth[:, None] * nb
+        return out
+
+    return to_unfolded, to_original
