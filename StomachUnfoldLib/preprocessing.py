@@ -257,38 +257,18 @@ def _touches_faces(mask: np.ndarray, axes) -> bool:
 
 
 def flood_fill(image: np.ndarray, seed) -> np.ndarray:
-    """Bool mask of the voxels 6-connected to ``seed`` (k, j, i) holding its value, as skimage's ``flood(image, seed, connectivity=1)``.
-
-    SimpleITK's ConnectedThreshold on a box around the seed that doubles on each side the region touches
-    until the region touches no inner face of the box, so only about the region's bounding box is visited.
-    """
+    """Voxels 6-connected to ``seed`` (k, j, i) with its value (bool), as skimage's ``flood(image, seed, connectivity=1)``."""
     import SimpleITK as sitk
 
     image = np.asarray(image, bool)
-    shape = np.array(image.shape)
-    s = np.array([int(x) for x in seed])
-    if s.shape != (3,) or np.any(s < 0) or np.any(s >= shape):
-        raise InputError(f"flood seed {s.tolist()} lies outside the array of shape {tuple(shape)}")
-    value = int(image[tuple(s)])
-    lo, hi = np.maximum(s - 32, 0), np.minimum(s + 33, shape)
-    while True:
-        sub = np.ascontiguousarray(image[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], dtype=np.uint8)
-        out = sitk.ConnectedThreshold(sitk.GetImageFromArray(sub), seedList=[tuple(int(x) for x in (s - lo)[::-1])],
-                                      lower=value, upper=value, replaceValue=1,
-                                      connectivity=sitk.ConnectedThresholdImageFilter.FaceConnectivity)
-        reg = sitk.GetArrayFromImage(out).view(bool)
-        grown = False
-        for a in range(3):
-            n = int(hi[a] - lo[a])
-            if lo[a] > 0 and np.take(reg, 0, axis=a).any():
-                lo[a], grown = max(0, lo[a] - n), True
-            if hi[a] < shape[a] and np.take(reg, n - 1, axis=a).any():
-                hi[a], grown = min(int(shape[a]), hi[a] + n), True
-        if not grown:
-            break
-    full = np.zeros(image.shape, bool)
-    full[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = reg
-    return full
+    s = tuple(int(x) for x in seed)
+    if len(s) != image.ndim or any(not 0 <= x < n for x, n in zip(s, image.shape)):
+        raise InputError(f"flood seed {list(s)} lies outside the array of shape {image.shape}")
+    value = int(image[s])
+    out = sitk.ConnectedThreshold(sitk.GetImageFromArray(image.view(np.uint8)), seedList=[s[::-1]], lower=value,
+                                  upper=value, replaceValue=1,
+                                  connectivity=sitk.ConnectedThresholdImageFilter.FaceConnectivity)
+    return sitk.GetArrayFromImage(out).view(bool)
 
 
 def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0, max_snap_mm: float = 20.0,
