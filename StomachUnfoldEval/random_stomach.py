@@ -50,7 +50,7 @@ HU = {"air": -1000, "lung": -850, "fat": -90, "tissue": 30, "muscle": 45, "wall"
       "bone": 350, "colon_wall": 40, "marker": 400, "fluid": 10}
 LABELS = {"background": 0, "lumen_air": 1, "lumen_fluid": 2, "wall": 3, "marker": 4, "lung": 5, "colon_gas": 6,
           "tube_wall": 7, "tube_lumen": 8, "liver": 9, "spleen": 10, "outside_air": 11, "colon_wall": 12}
-GEODESIC_GRID_MM = 0.8
+GEODESIC_GRID_MM = 1.0
 CUT_BAND_MM = 3.0
 MARKER_MIN_GC_MM = 12.0
 
@@ -331,22 +331,31 @@ class StomachModel:
         self._coarse = (np.array([axs[0][0], axs[1][0], axs[2][0]]), h,
                         F["f_r"].reshape(X.shape).astype(np.float32), F["f"].reshape(X.shape).astype(np.float32))
 
-    def fast(self, P, band: float = 4.0):
+    def fast(self, P, band: float = 4.0, outer: bool = True):
         """(f_r, f) at LPS points (N,3): coarse-grid interpolation, exact where within ``band`` mm of a surface."""
         P = np.asarray(P, float)
         o, h, Cr, Cf = self._coarse
-        q = (P - o) / h
+        fr = np.full(len(P), 1e3)
+        f = np.full(len(P), 1e3)
+        ins = np.nonzero(np.all((P >= self.lo) & (P <= self.hi), axis=1))[0]
+        if len(ins) == 0:
+            return fr, f
+        Q = P[ins]
+        q = (Q - o) / h
         c = np.stack([q[:, 2], q[:, 1], q[:, 0]])
-        fr = map_coordinates(Cr, c, order=1, mode="nearest").astype(np.float64)
-        f = map_coordinates(Cf, c, order=1, mode="nearest").astype(np.float64)
-        inside = np.all((P >= self.lo) & (P <= self.hi), axis=1)
-        fr[~inside] = 1e3
-        f[~inside] = 1e3
-        near = inside & ((np.abs(fr) < band) | (np.abs(f - self.w) < band))
+        a = map_coordinates(Cr, c, order=1, mode="nearest").astype(np.float64)
+        near = np.abs(a) < band
+        if outer:
+            b = map_coordinates(Cf, c, order=1, mode="nearest").astype(np.float64)
+            near |= np.abs(b - self.w) < band
+        else:
+            b = a.copy()
         if near.any():
-            F = self.fields(P[near])
-            fr[near] = F["f_r"]
-            f[near] = F["f"]
+            F = self.fields(Q[near])
+            a[near] = F["f_r"]
+            b[near] = F["f"]
+        fr[ins] = a
+        f[ins] = b
         return fr, f
 
     def gradient(self, P, eps=0.25):
@@ -405,16 +414,19 @@ class StomachModel:
                                              self.d["oesophagus_open_mm"], self.d["oesophagus_open_length_mm"]),
                                             (self.duo_tree, self.duo_s, self.d["duodenum_wall_radius_mm"],
                                              self.d["duodenum_open_mm"], self.d["duodenum_open_length_mm"])):
-            dist, idx = tree.query(P, distance_upper_bound=float(rw) + 1.0, workers=-1)
+            sel = np.nonzero(np.all((P >= tree.mins - rw - 1) & (P <= tree.maxes + rw + 1), axis=1))[0]
+            if len(sel) == 0:
+                continue
+            dist, idx = tree.query(P[sel], distance_upper_bound=float(rw) + 1.0, workers=-1)
             hit = np.isfinite(dist)
             if not hit.any():
                 continue
-            idx = np.minimum(idx, len(s_arr) - 1)
+            sel, dist, idx = sel[hit], dist[hit], np.minimum(idx[hit], len(s_arr) - 1)
             s = s_arr[idx]
-            wall |= hit & (dist < rw) & (fr >= 0) & (s > -1.0)
+            wall[sel] |= (dist < rw) & (fr[sel] >= 0) & (s > -1.0)
             if ro > 0 and not hybrid:
                 r_open = ro * np.clip((lo_len - s) / 5.0, 0, 1)
-                lum |= hit & (dist < r_open) & (s > -3.0)
+                lum[sel] |= (dist < r_open) & (s > -3.0)
         return wall & ~lum, lum
 
 
@@ -429,8 +441,6 @@ class GridSDF:
         self.F = np.ascontiguousarray(F, dtype=np.float32)
         self.origin = np.asarray(origin, float).reshape(3)
         self.h = float(h)
-        gz, gy, gx = np.gradient(self.F, self.h)
-        self.G = (gx.astype(np.float32), gy.astype(np.float32), gz.astype(np.float32))
 
     def _coords(self, P):
         q = (np.asarray(P, float) - self.origin) / self.h
@@ -440,13 +450,37 @@ class GridSDF:
         """Trilinear value at LPS points (N,3) mm."""
         return map_coordinates(self.F, self._coords(P), order=1, mode="nearest")
 
+    def value_grad(self, P):
+        """Trilinear value and its gradient (per mm) at LPS points (N,3); points are clamped into the grid."""
+        nz, ny, nx = self.F.shape
+        q = (np.asarray(P, float) - self.origin) / self.h
+        hi = np.array([nx - 1.001, ny - 1.001, nz - 1.001])
+        q = np.clip(q, 0.0, hi)
+        i0 = q.astype(np.int64)
+        t = q - i0
+        base = (i0[:, 2] * ny + i0[:, 1]) * nx + i0[:, 0]
+        Ff = self.F.ravel()
+        c = [Ff[base + o] for o in (0, 1, nx, nx + 1, nx * ny, nx * ny + 1, nx * ny + nx, nx * ny + nx + 1)]
+        tx, ty, tz = t[:, 0], t[:, 1], t[:, 2]
+        c00 = c[0] + (c[1] - c[0]) * tx
+        c10 = c[2] + (c[3] - c[2]) * tx
+        c01 = c[4] + (c[5] - c[4]) * tx
+        c11 = c[6] + (c[7] - c[6]) * tx
+        c0 = c00 + (c10 - c00) * ty
+        c1 = c01 + (c11 - c01) * ty
+        f = c0 + (c1 - c0) * tz
+        dx0 = (c[1] - c[0]) + ((c[3] - c[2]) - (c[1] - c[0])) * ty
+        dx1 = (c[5] - c[4]) + ((c[7] - c[6]) - (c[5] - c[4])) * ty
+        gx = dx0 + (dx1 - dx0) * tz
+        gy = (c10 - c00) + ((c11 - c01) - (c10 - c00)) * tz
+        gz = c1 - c0
+        return f, np.stack([gx, gy, gz], 1) / self.h
+
     def project(self, P, steps: int = 2):
         """Move LPS points (N,3) onto the zero level along the field gradient (Newton steps); returns (N,3)."""
         P = np.array(P, float)
         for _ in range(steps):
-            c = self._coords(P)
-            f = map_coordinates(self.F, c, order=1, mode="nearest")
-            g = np.stack([map_coordinates(G, c, order=1, mode="nearest") for G in self.G], 1)
+            f, g = self.value_grad(P)
             g2 = np.maximum(np.sum(g * g, 1), 1e-6)
             step = np.clip(f / g2, -2.0 * self.h, 2.0 * self.h)
             P -= step[:, None] * g
@@ -517,7 +551,7 @@ def _resample(poly, step):
     return np.stack([np.interp(t, s, poly[:, a]) for a in range(3)], 1)
 
 
-def _shorten(paths, sdf: GridSDF, keep_out=None, levels=(4.0, 2.0, 1.0), iters=(60, 60, 80)):
+def _shorten(paths, sdf: GridSDF, keep_out=None, levels=(4.0, 2.0, 1.25), iters=(40, 30, 25)):
     """Shorten polylines on the zero level of ``sdf`` with fixed ends (damped Jacobi + projection), coarse to fine.
 
     ``keep_out`` = (cKDTree of points, radius mm): points are pushed to at least that distance from them.
@@ -540,8 +574,8 @@ def _shorten(paths, sdf: GridSDF, keep_out=None, levels=(4.0, 2.0, 1.0), iters=(
             Y = sdf.project(Y, steps=1)
             if keep_out is not None:
                 tree, rad = keep_out
-                d, j = tree.query(Y)
-                inside = d < rad
+                d, j = tree.query(Y, distance_upper_bound=rad)
+                inside = np.isfinite(d)
                 if inside.any():
                     q = tree.data[j[inside]]
                     v = Y[inside] - q
@@ -593,3 +627,471 @@ def surface_geodesics(V, T, sources, sdf: GridSDF | None = None, removed=None, k
             if np.isfinite(l) and l <= out[a, b] * 1.02 + 1.0:
                 out[a, b] = out[b, a] = l
     return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# markers and their geodesics
+# ---------------------------------------------------------------------------------------------------------------
+def _regions(model: StomachModel, P, fluid_y):
+    """Anatomic region names and the under-fluid flag of mucosa points P (LPS)."""
+    F = model.fields(P)
+    s = model.arc[F["idx"]]
+    phi = np.abs(F["phi"])
+    dome = (F["fe"] < F["ft"] + 2.0) & (P[:, 2] > model.cardia_open[2] + 5.0)
+    antrum = ~dome & (s > model.s_incisure + 5.0)
+    lesser = ~dome & ~antrum & (phi > np.radians(130)) & (s > 15.0)
+    greater = ~dome & ~antrum & ~lesser & (phi < np.radians(60))
+    names = np.where(dome, "dome", np.where(antrum, "antrum", np.where(lesser, "lesser",
+                                                                         np.where(greater, "greater", "body"))))
+    under = np.zeros(len(P), bool) if fluid_y is None else P[:, 1] > fluid_y
+    return names, under
+
+
+def _pick_markers(model: StomachModel, V, n, rng, fluid_y, sep=12.0):
+    d_gc = model.gc_tree.query(V)[0]
+    ok = (d_gc >= MARKER_MIN_GC_MM) & (np.linalg.norm(V - model.cardia_open, axis=1) >= 16.0)
+    ok &= np.linalg.norm(V - model.pylorus_open, axis=1) >= 12.0
+    for tree, rw in ((model.oes_tree, model.d["oesophagus_wall_radius_mm"]),
+                     (model.duo_tree, model.d["duodenum_wall_radius_mm"])):
+        ok &= tree.query(V)[0] > rw + 3.0
+    if fluid_y is not None:
+        ok &= np.abs(V[:, 1] - fluid_y) >= 4.0
+    names, under = _regions(model, V, fluid_y)
+    chosen = []
+
+    def take(mask, k):
+        cand = np.nonzero(mask & ok)[0]
+        for _ in range(k):
+            if len(cand) == 0:
+                return
+            if chosen:
+                dmin = np.min(np.linalg.norm(V[cand, None, :] - V[None, chosen, :], axis=2), axis=1)
+                good = dmin >= sep
+                if not good.any():
+                    return
+                c = cand[good][np.argmax(dmin[good])] if len(chosen) > 1 else cand[good][rng.integers(good.sum())]
+            else:
+                c = cand[rng.integers(len(cand))]
+            chosen.append(int(c))
+            cand = cand[cand != c]
+
+    if fluid_y is not None:
+        take(under, 3)
+    for reg in ("dome", "lesser", "greater", "antrum", "body"):
+        take((names == reg) & ~under, 3 if reg != "body" else 2)
+    take(np.ones(len(V), bool), n - len(chosen))
+    return np.array(chosen[:n], int)
+
+
+def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h=GEODESIC_GRID_MM):
+    """Fine lumen SDF grid, mucosa mesh, marker choice and both geodesic matrices; returns a dict."""
+    o, hc, Cr, _ = model._coarse
+    f = int(round(hc / h))
+    h = hc / f
+    F = zoom(Cr, [(f * (n - 1) + 1) / n for n in Cr.shape], order=1, grid_mode=False, mode="nearest")
+    assert all(a == f * (n - 1) + 1 for a, n in zip(F.shape, Cr.shape))
+    band = np.nonzero(np.abs(F.ravel()) < 1.5 * hc)[0]
+    kk, jj, ii = np.unravel_index(band, F.shape)
+    P = o + h * np.stack([ii, jj, kk], 1)
+    F.ravel()[band] = model.fields(P)["f_r"]
+    sdf = GridSDF(F, o, h)
+    Vc, Tc = implicit_surface_mesh(Cr, o, hc)
+    ymin, ymax = Vc[:, 1].min(), Vc[:, 1].max()
+    fluid_y = None if fluid_fraction is None else float(ymax - fluid_fraction * (ymax - ymin))
+    sel = _pick_markers(model, Vc, n_markers, rng, fluid_y)
+    ends = sdf.project(Vc[sel], steps=4)
+    G = ring_graph(Vc, Tc, 2)
+    geo = surface_geodesics(Vc, Tc, sel, sdf, endpoints=ends, graph=G)
+    removed = model.gc_tree.query(Vc)[0] < CUT_BAND_MM
+    geo_cut = surface_geodesics(Vc, Tc, sel, sdf, removed=removed, keep_out=(model.gc_tree, CUT_BAND_MM),
+                                endpoints=ends, graph=G)
+    area = float(np.sum(np.linalg.norm(np.cross(Vc[Tc[:, 1]] - Vc[Tc[:, 0]], Vc[Tc[:, 2]] - Vc[Tc[:, 0]]), axis=1))
+                 / 2)
+    lumen_ml = float(np.sum(F < 0) * h ** 3 / 1000.0)
+    del F
+    return {"markers_lps": ends, "geodesic": geo, "geodesic_cut": geo_cut, "fluid_y": fluid_y,
+            "mucosa_area_mm2": area, "lumen_volume_ml": lumen_ml, "n_mesh_vertices": int(len(Vc))}
+
+
+def _marker_truth(model, pos, fluid_y, bead):
+    names, under = _regions(model, pos, fluid_y)
+    g = model.gradient(pos)
+    d_gc = model.gc_tree.query(pos)[0]
+    out = []
+    for m in range(len(pos)):
+        nrm = -_unit(g[m])
+        out.append({"id": f"M{m + 1:02d}", "index": m, "lps": pos[m].tolist(), "ras": lps_to_ras(pos[m]).tolist(),
+                    "normal_lps": nrm.tolist(), "region": "under_fluid" if under[m] else str(names[m]),
+                    "anatomic_region": str(names[m]), "under_fluid": bool(under[m]),
+                    "distance_to_greater_curvature_mm": float(d_gc[m]), "radius_mm": bead})
+    return out
+
+
+def _nan_list(A):
+    return [[(float(v) if np.isfinite(v) else float("nan")) for v in row] for row in np.asarray(A)]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# surroundings
+# ---------------------------------------------------------------------------------------------------------------
+class _Surroundings:
+    """Synthetic abdomen around a model: body, fat, muscle, spine, liver, spleen, lungs, transverse colon."""
+
+    def __init__(self, model: StomachModel, d: dict):
+        self.m, self.d = model, d
+        c = model.c_f
+        self.body_ax = np.asarray(d["body_semi_axes_mm"], float)
+        self.fat = float(d["subcutaneous_fat_mm"])
+        self.liver_c = np.array([c[0] - 140.0, c[1] - 15.0, c[2] - 15.0])
+        self.liver_ax = np.array([95.0, 95.0, 85.0])
+        self.spleen_c = c + np.array([30.0, 55.0, -25.0])
+        self.spleen_ax = np.array([26.0, 38.0, 52.0])
+        self.lung_floor = c[2] - 15.0
+        # transverse colon under the greater curvature, 3-8 mm of tissue from the wall at the closest
+        low = model.core[np.argmin(model.core[:, 2] - model.radius)]
+        self.xb = float(low[0])
+        self.rc = float(d["colon_radius_mm"])
+        self.y0 = float(low[1] - 10.0)
+        self.z0 = float(model.core[:, 2].min() - model.radius.max() - model.w - d["colon_gap_mm"] - self.rc - 2.5)
+        xs = np.arange(-120.0, 130.0, 2.0)
+        an = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+        for _ in range(8):
+            yc, zc = self.colon_axis(xs)
+            R = self.rc + 2.5
+            P = np.stack([np.repeat(xs, len(an)), (yc[:, None] + R * np.cos(an)).ravel(),
+                          (zc[:, None] + R * np.sin(an)).ravel()], 1)
+            gap = float(np.min(model.fields(P, rugae=False)["f"]) - model.w)
+            if abs(gap - d["colon_gap_mm"]) < 0.2:
+                break
+            self.z0 += gap - d["colon_gap_mm"]
+        self.colon_gap = gap
+
+    @staticmethod
+    def _sdf_box(P, c, ax, margin):
+        """Ellipsoid SDF evaluated only inside its bounding box (+margin mm); 1e3 elsewhere."""
+        out = np.full(len(P), 1e3)
+        m = np.asarray(ax) + margin
+        sel = np.nonzero((np.abs(P[:, 0] - c[0]) <= m[0]) & (np.abs(P[:, 1] - c[1]) <= m[1])
+                         & (np.abs(P[:, 2] - c[2]) <= m[2]))[0]
+        if len(sel):
+            out[sel] = _ellipsoid_sdf(P[sel], c, ax)
+        return out
+
+    def colon_axis(self, x):
+        """(y, z) LPS of the colon axis at x (mm)."""
+        return (self.y0 + 8.0 * np.sin(x / 45.0), self.z0 + 12.0 * ((x - self.xb) / 110.0) ** 2)
+
+    def base(self, x, y):
+        """z-independent part at points (x, y): HU, labels and the inside-the-muscle mask (body, fat, spine)."""
+        a, b = self.body_ax
+        r = (x / a) ** 2 + (y / b) ** 2
+        inner1 = (x / (a - self.fat)) ** 2 + (y / (b - self.fat)) ** 2
+        inner2 = (x / (a - self.fat - 10)) ** 2 + (y / (b - self.fat - 10)) ** 2
+        val = np.full(len(x), HU["fat"], np.float32)
+        lab = np.full(len(x), LABELS["background"], np.uint8)
+        val[inner2 > 1] = HU["muscle"]
+        val[inner1 > 1] = HU["fat"]
+        val[r > 1] = HU["air"]
+        lab[r > 1] = LABELS["outside_air"]
+        inside = inner2 <= 1
+        spine = (x ** 2 + (y - (b - self.fat - 55)) ** 2) < 20 ** 2
+        val[spine & inside] = HU["bone"]
+        return val, lab, inside
+
+    def paint(self, P, fr, f, val, lab, base=None):
+        """Fill HU ``val`` and labels ``lab`` (N,) of LPS points P for everything but the stomach itself.
+
+        ``base``: ``self.base`` of one z-plane when P is a stack of whole planes (z slowest)."""
+        x, y, z = P[:, 0], P[:, 1], P[:, 2]
+        if base is None:
+            base = self.base(x, y)
+        v2, l2, in2 = base
+        reps = len(P) // len(v2)
+        val[:] = np.tile(v2, reps)
+        lab[:] = np.tile(l2, reps)
+        inside = np.tile(in2, reps)
+        w = self.m.w
+        free = inside & (f > w + 1.5)
+        l_sdf = self._sdf_box(P, self.liver_c, self.liver_ax, 10.0)
+        liver = free & (l_sdf < 0)
+        val[liver] = HU["liver"]
+        lab[liver] = LABELS["liver"]
+        s_sdf = self._sdf_box(P, self.spleen_c, self.spleen_ax, 10.0)
+        spleen = free & (s_sdf < 0) & ~liver
+        val[spleen] = HU["spleen"]
+        lab[spleen] = LABELS["spleen"]
+        # lungs: above the diaphragm, which follows the fundus dome (lung_gap mm of tissue) and the liver dome
+        gap = float(self.d["lung_gap_mm"])
+        left = inside & (((x - 85) / 70) ** 2 + ((y - 10) / 95) ** 2 < 1) & (z > self.lung_floor)
+        right = inside & (((x + 85) / 70) ** 2 + ((y - 10) / 95) ** 2 < 1) & (z > self.liver_c[2] + 20)
+        chest = left | right
+        val[chest & (lab == LABELS["background"])] = HU["muscle"]
+        lung = chest & (f > w + gap) & (s_sdf > gap) & (l_sdf > gap)
+        t = self.m.oes_tree
+        li = np.nonzero(lung & np.all((P >= t.mins - 16) & (P <= t.maxes + 16), axis=1))[0]
+        if len(li):
+            d_oes = t.query(P[li], distance_upper_bound=16.0)[0]
+            lung[li[np.isfinite(d_oes)]] = False
+        val[lung] = HU["lung"]
+        lab[lung] = LABELS["lung"]
+        # transverse colon
+        yc, zc = self.colon_axis(x)
+        dc = np.sqrt((y - yc) ** 2 + (z - zc) ** 2)
+        span = inside & (x > -125) & (x < 135)
+        cw = span & (dc < self.rc + 2.5) & (f > w + 1.0)
+        val[cw] = HU["colon_wall"]
+        lab[cw] = LABELS["colon_wall"]
+        cg = span & (dc < self.rc)
+        val[cg] = HU["air"]
+        lab[cg] = LABELS["colon_gas"]
+
+
+def _paint_stomach(model: StomachModel, P, fr, f, fluid_y, fluid_hu, val, lab, hybrid=False):
+    """Stomach lumen (air / fluid below the level), wall and the oesophagus/duodenum tubes at LPS points P."""
+    wall = (fr >= 0) & (f < model.w)
+    lum = fr < 0
+    tw, tl = model.tubes(P, fr, hybrid=hybrid)
+    val[wall] = HU["wall"]
+    lab[wall] = LABELS["wall"]
+    val[tw] = HU["wall"]
+    lab[tw] = LABELS["tube_wall"]
+    val[tl] = HU["air"]
+    lab[tl] = LABELS["tube_lumen"]
+    val[lum] = HU["air"]
+    lab[lum] = LABELS["lumen_air"]
+    if fluid_y is not None:
+        fl = lum & (P[:, 1] > fluid_y)
+        val[fl] = fluid_hu
+        lab[fl] = LABELS["lumen_fluid"]
+
+
+def _paint_markers(vals, labs, origin, sp, markers_lps, bead, value=HU["marker"]):
+    """Partial-volume beads on a canonical LPS grid vals[z,y,x] (origin, spacing sp x/y/z mm)."""
+    delta = float(np.mean(sp))
+    for c in markers_lps:
+        lo = np.floor((c - bead - 2 * delta - origin) / sp).astype(int)
+        hi = np.ceil((c + bead + 2 * delta - origin) / sp).astype(int) + 1
+        lo = np.maximum(lo, 0)
+        hi = np.minimum(hi, np.array(vals.shape[::-1]))
+        if np.any(hi <= lo):
+            continue
+        xs = origin[0] + sp[0] * np.arange(lo[0], hi[0])
+        ys = origin[1] + sp[1] * np.arange(lo[1], hi[1])
+        zs = origin[2] + sp[2] * np.arange(lo[2], hi[2])
+        Z, Y, X = np.meshgrid(zs, ys, xs, indexing="ij")
+        r = np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2)
+        cov = np.clip(0.5 - (r - bead) / delta, 0.0, 1.0)
+        sub = vals[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+        sub[:] = sub * (1 - cov) + value * cov
+        if labs is not None:
+            labs[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]][cov >= 0.5] = LABELS["marker"]
+
+
+def _reorient(C, lo, sp_lps, perm, signs):
+    """Canonical C[z,y,x] (LPS-ordered, origin lo, spacing per LPS axis) -> (array[k,j,i], origin, direction)."""
+    T = C.transpose(2, 1, 0).transpose(perm)
+    for a in range(3):
+        if signs[a] < 0:
+            T = np.flip(T, axis=a)
+    arr = np.ascontiguousarray(T.transpose(2, 1, 0))
+    D = np.zeros((3, 3))
+    origin = np.array(lo, float).copy()
+    n = np.array(C.shape[::-1])
+    for a in range(3):
+        D[perm[a], a] = signs[a]
+        if signs[a] < 0:
+            origin[perm[a]] = lo[perm[a]] + (n[perm[a]] - 1) * sp_lps[perm[a]]
+    return arr, origin, D
+
+
+def lps_array(vol: Volume):
+    """The array of a Volume with a signed-permutation direction, reordered to [z, y, x] with x, y, z increasing
+    (LPS), and its (origin LPS mm, spacing x/y/z mm)."""
+    D = np.asarray(vol.direction)
+    A = vol.array.transpose(2, 1, 0)              # [i, j, k]
+    perm = [int(np.argmax(np.abs(D[:, a]))) for a in range(3)]
+    if sorted(perm) != [0, 1, 2] or not np.allclose(np.abs(D).max(0), 1):
+        raise InputError("lps_array needs a direction matrix that is a signed permutation")
+    signs = [float(np.sign(D[perm[a], a])) for a in range(3)]
+    for a in range(3):
+        if signs[a] < 0:
+            A = np.flip(A, axis=a)
+    inv = np.argsort(perm)
+    A = A.transpose(inv)                          # [x, y, z]
+    sp = np.array([vol.spacing[inv[b]] for b in range(3)])
+    n = np.array(A.shape)
+    origin = np.array(vol.origin, float).copy()
+    for a in range(3):
+        if signs[a] < 0:
+            origin[perm[a]] -= (n[perm[a]] - 1) * sp[perm[a]]
+    return np.ascontiguousarray(A.transpose(2, 1, 0)), origin, sp
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the public generators
+# ---------------------------------------------------------------------------------------------------------------
+def random_stomach(seed, size: str = "small", labels: bool = False, geodesics: bool = True, **overrides):
+    """Draw a stomach CT (int16 HU Volume, LPS) and its truth (LPS/RAS mm) from ``seed``; see the module docstring.
+
+    ``labels=True`` also returns the uint8 label array (``LABELS``, same layout as the volume's array).
+    Parameters of ``draw_parameters`` may be overridden by keyword.
+    """
+    t0 = time.perf_counter()
+    d = draw_parameters(seed, size, **overrides)
+    model = StomachModel(d)
+    mrng = np.random.default_rng(d["marker_seed"])
+    G = _model_geodesics(model, mrng, d["n_markers"], d["fluid_depth_fraction"] if d["fluid"] else None)
+    t_geo = time.perf_counter()
+    fluid_y = G["fluid_y"]
+    sur = _Surroundings(model, d)
+    # canonical LPS-ordered grid
+    perm, signs = list(d["direction_perm"]), list(d["direction_signs"])
+    sp_ijk = np.asarray(d["spacing_ijk_mm"], float)
+    sp = np.zeros(3)
+    for a in range(3):
+        sp[perm[a]] = sp_ijk[a]
+    colon_lo = np.array([model.lo[0], sur.y0 - sur.rc - 12, sur.z0 - sur.rc - 12])
+    lo = np.minimum(model.lo - np.array([25.0, 25.0, 20.0]), colon_lo)
+    hi = model.hi + np.array([25.0, 25.0, 40.0])
+    if size == "full":
+        half = 255.5 * sp[:2]
+        lo[:2], hi[:2] = -half, half
+    n = np.floor((hi - lo) / sp).astype(int) + 1
+    vals = np.empty((n[2], n[1], n[0]), np.float32)
+    labs = np.empty((n[2], n[1], n[0]), np.uint8)
+    xs = lo[0] + sp[0] * np.arange(n[0])
+    ys = lo[1] + sp[1] * np.arange(n[1])
+    slab = max(1, int(1_500_000 // (n[0] * n[1])))
+    Y2, X2 = np.meshgrid(ys, xs, indexing="ij")
+    base2d = sur.base(X2.ravel(), Y2.ravel())
+    for k0 in range(0, n[2], slab):
+        k1 = min(n[2], k0 + slab)
+        zs = lo[2] + sp[2] * np.arange(k0, k1)
+        P = np.stack([np.broadcast_to(X2, (k1 - k0,) + X2.shape).ravel(),
+                      np.broadcast_to(Y2, (k1 - k0,) + X2.shape).ravel(),
+                      np.repeat(zs, X2.size)], 1)
+        fr, f = model.fast(P)
+        v = np.empty(len(P), np.float32)
+        lb = np.empty(len(P), np.uint8)
+        sur.paint(P, fr, f, v, lb, base=base2d)
+        _paint_stomach(model, P, fr, f, fluid_y, d["fluid_hu"], v, lb)
+        vals[k0:k1] = v.reshape(k1 - k0, n[1], n[0])
+        labs[k0:k1] = lb.reshape(k1 - k0, n[1], n[0])
+    bead = float(max(1.5, 0.6 * sp.max()))
+    _paint_markers(vals, labs, lo, sp, G["markers_lps"], bead)
+    vals = gaussian_filter(vals, float(d["blur_vox"]), mode="nearest")
+    nrng = np.random.default_rng(d["noise_seed"])
+    vals += nrng.standard_normal(vals.shape, dtype=np.float32) * np.float32(d["noise_hu"])
+    np.clip(vals, -1024, 3071, out=vals)
+    arr, origin, D = _reorient(vals.astype(np.int16), lo, sp, perm, signs)
+    vol = Volume(arr, sp_ijk, origin, D)
+    truth = _truth(model, d, G, sur, vol, bead, fluid_y)
+    truth["seconds"] = {"geodesics": t_geo - t0, "total": time.perf_counter() - t0}
+    if labels:
+        return vol, truth, _reorient(labs, lo, sp, perm, signs)[0]
+    return vol, truth
+
+
+def _truth(model, d, G, sur, vol, bead, fluid_y):
+    step = 4
+    cl = np.concatenate([np.linspace(model.cardia_in, model.c_f, 20)[:-1], model.core[::step]])
+    rad = np.concatenate([np.full(19, float(model.axes.min())), model.radius[::step]])
+    return {"kind": "random_stomach", "seed": int(d["seed"]), "size": d["size"], "shape": d["shape"],
+            "spacing": [float(v) for v in vol.spacing], "direction": np.asarray(vol.direction).tolist(),
+            "origin": [float(v) for v in vol.origin], "size_ijk": [int(v) for v in vol.size],
+            "cardia_lps": model.cardia_in.tolist(), "pylorus_lps": model.pylorus_in.tolist(),
+            "cardia_ras": lps_to_ras(model.cardia_in).tolist(), "pylorus_ras": lps_to_ras(model.pylorus_in).tolist(),
+            "cardia_opening_lps": model.cardia_open.tolist(), "pylorus_opening_lps": model.pylorus_open.tolist(),
+            "oesophagus_axis_lps": model.oes_axis.tolist(),
+            "centerline_lps": cl.tolist(), "radius_mm": rad.tolist(),
+            "greater_curvature_lps": model.gc[::4].tolist(), "cut_band_mm": CUT_BAND_MM,
+            "wall_thickness_mm": model.w, "rugae": bool(d["rugae"]),
+            "antrum_min_radius_mm": float(model.radius.min()),
+            "lumen_kind": "air_fluid" if fluid_y is not None else "air",
+            "fluid_level_lps_y": fluid_y, "fluid_hu": float(d["fluid_hu"]) if fluid_y is not None else None,
+            "dome_top_lps": _dome_top(model).tolist(),
+            "colon_gap_mm": float(sur.colon_gap), "lung_gap_mm": float(d["lung_gap_mm"]),
+            "lumen_volume_ml": G["lumen_volume_ml"], "mucosa_area_mm2": G["mucosa_area_mm2"],
+            "markers": _marker_truth(model, G["markers_lps"], fluid_y, bead), "marker_radius_mm": bead,
+            "geodesic_mm": _nan_list(G["geodesic"]), "geodesic_cut_mm": _nan_list(G["geodesic_cut"]),
+            "hu": dict(HU, fluid=float(d["fluid_hu"])), "labels": dict(LABELS), "draw": d}
+
+
+def _dome_top(model):
+    """Highest lumen point (LPS) of the dome region."""
+    D = np.array([[0.0, 0.0, 1.0]])
+    best = None
+    for dx in np.linspace(-0.6, 0.6, 7):
+        for dy in np.linspace(-0.6, 0.6, 7):
+            p = model._ray_hit(model.c_f[None], _unit(np.array([[dx, dy, 1.0]])))[0]
+            if best is None or p[2] > best[2]:
+                best = p
+    return best if best is not None else model._ray_hit(model.c_f[None], D)[0]
+
+
+def write_random_stomach(path, seed, size: str = "small", **kw):
+    """Write a drawn stomach volume, its truth JSON (stem + .json) and cardia/pylorus stem.mrk.json; (path, json)."""
+    from StomachUnfoldLib.io import atomic_write_text, write_markups_fiducials, write_volume
+
+    vol, truth = random_stomach(seed, size, **kw)
+    path = os.fspath(path)
+    stem = path
+    for ext in (".nii.gz", ".nrrd", ".nii", ".mha", ".mhd"):
+        if path.endswith(ext):
+            stem = path[: -len(ext)]
+            break
+    write_volume(vol, path)
+    json_path = stem + ".json"
+    atomic_write_text(json_path, json.dumps(truth, indent=1))
+    write_markups_fiducials(stem + ".mrk.json", {"cardia": np.array(truth["cardia_lps"]),
+                                                  "pylorus": np.array(truth["pylorus_lps"])}, "stomach points")
+    return path, json_path
+
+
+def make_contact_sheet(path, seeds=(0, 1, 2, 3, 4, 5), size: str = "tiny"):
+    """Write a PNG contact sheet of drawn stomachs: coronal and axial slices and a coronal minimum projection."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(len(seeds), 4, figsize=(16, 3.6 * len(seeds)))
+    axs = np.atleast_2d(axs)
+    for r, seed in enumerate(seeds):
+        vol, truth = random_stomach(seed, size)
+        A, o, sp = lps_array(vol)                      # [z, y, x]
+        cf = np.asarray(truth["draw"]["dome_centre_lps"])
+        mk = np.array([m["lps"] for m in truth["markers"]])
+        yi = int(np.clip(round((cf[1] - o[1]) / sp[1]), 0, A.shape[1] - 1))
+        ext_cor = [o[0], o[0] + sp[0] * (A.shape[2] - 1), o[2], o[2] + sp[2] * (A.shape[0] - 1)]
+        ext_ax = [o[0], o[0] + sp[0] * (A.shape[2] - 1), o[1] + sp[1] * (A.shape[1] - 1), o[1]]
+        body_z = float(np.mean(np.array(truth["centerline_lps"])[:, 2]))
+        zi = int(np.clip(round((body_z - o[2]) / sp[2]), 0, A.shape[0] - 1))
+        low_y = int(np.clip(round((np.array(truth["centerline_lps"])[-1, 1] - o[1]) / sp[1]), 0, A.shape[1] - 1))
+        panels = [(A[:, yi, :], ext_cor, "coronal y=%.0f (dome centre)" % (o[1] + yi * sp[1]), "cor", yi),
+                  (A[:, low_y, :], ext_cor, "coronal y=%.0f (pylorus)" % (o[1] + low_y * sp[1]), "cor", low_y),
+                  (A[zi], ext_ax, "axial z=%.0f" % (o[2] + zi * sp[2]), "ax", zi),
+                  (A.min(axis=1), ext_cor, "coronal MinIP (gas)", "minip", None)]
+        for c, (img, ext, title, kind, _) in enumerate(panels):
+            ax = axs[r, c]
+            ax.imshow(img[::-1] if kind != "ax" else img, cmap="gray", vmin=-1000 if kind == "minip" else -250,
+                      vmax=200 if kind == "minip" else 450, extent=ext, aspect="equal", interpolation="nearest")
+            if kind in ("cor", "minip"):
+                ax.plot(mk[:, 0], mk[:, 2], "o", ms=3, mfc="none", mec="y", mew=0.7)
+                gc = np.array(truth["greater_curvature_lps"])
+                if kind == "minip":
+                    ax.plot(gc[:, 0], gc[:, 2], "-", color="r", lw=0.6)
+                    ax.plot(*np.array(truth["cardia_lps"])[[0, 2]], "c^", ms=5)
+                    ax.plot(*np.array(truth["pylorus_lps"])[[0, 2]], "m^", ms=5)
+            ax.set_title(title, fontsize=8)
+            ax.tick_params(labelsize=6)
+        d = truth["draw"]
+        axs[r, 0].set_ylabel("seed %d: %s, wall %.1f mm, %s%s\nspacing %s mm" % (
+            seed, truth["shape"], truth["wall_thickness_mm"], truth["lumen_kind"], ", rugae" if d["rugae"] else "",
+            "x".join("%.2f" % v for v in truth["spacing"])), fontsize=8)
+    fig.suptitle("Random stomachs (LPS; image left = patient's right; yellow: markers, red: greater curvature, "
+                 "cyan/magenta: cardia/pylorus)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
