@@ -29,7 +29,7 @@ from ..geometry import Volume
 __all__ = ["Mesh", "Unfolding", "Method", "register", "get_method", "method_names", "methods", "BUILTIN"]
 
 #: The built-in methods' modules, in the order they are listed.
-BUILTIN = ("massspring", "cylindrical", "lscm")
+BUILTIN = ("massspring", "cylindrical", "lscm", "isometric")
 
 _REGISTRY: dict[str, type] = {}
 
