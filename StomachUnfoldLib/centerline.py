@@ -246,7 +246,7 @@ def minimal_path(cost: np.ndarray, start, end, sampling=(1.0, 1.0, 1.0)):
     """
     from itertools import product
 
-    from scipy.sparse import coo_matrix
+    from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import dijkstra
 
     cost = np.asarray(cost, float)
@@ -255,24 +255,24 @@ def minimal_path(cost: np.ndarray, start, end, sampling=(1.0, 1.0, 1.0)):
     ok = np.isfinite(cost) & (cost >= 0)
     if not (ok[start] and ok[end]):
         return None, np.inf
-    node = np.full(shape, -1, np.int64)
     n = int(np.count_nonzero(ok))
-    node[ok] = np.arange(n)
+    padded = np.full(tuple(d + 2 for d in shape), -1, np.int32)  # node ids; -1: impassable or outside
+    padded[1:-1, 1:-1, 1:-1][ok] = np.arange(n, dtype=np.int32)
+    pos = np.flatnonzero(padded >= 0)  # the nodes' flat positions in the padded array, in node order
+    pflat = padded.ravel()
+    strides = np.array([padded.shape[1] * padded.shape[2], padded.shape[2], 1])
     sp = np.asarray(sampling, float).reshape(3)
-    rows, cols, weights = [], [], []
-    for off in product((-1, 0, 1), repeat=3):
-        if off <= (0, 0, 0):  # each undirected edge once: the 13 offsets lexicographically after 0
-            continue
-        src = tuple(slice(max(0, -o), shape[a] - max(0, o)) for a, o in enumerate(off))
-        dst = tuple(slice(max(0, o), shape[a] - max(0, -o)) for a, o in enumerate(off))
-        a, b = node[src], node[dst]
-        m = (a >= 0) & (b >= 0)
-        rows.append(a[m])
-        cols.append(b[m])
-        weights.append((cost[src][m] + cost[dst][m]) * (0.5 * float(np.sqrt(np.sum((np.array(off) * sp) ** 2)))))
-    graph = coo_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
-    i0, i1 = int(node[start]), int(node[end])
-    dist, pred = dijkstra(graph, directed=False, indices=i0, return_predecessors=True)
+    c = cost[ok]
+    offsets = np.array([o for o in product((-1, 0, 1), repeat=3) if o != (0, 0, 0)])
+    nb = pflat[pos[None, :] + (offsets @ strides)[:, None]]  # (26, n) neighbour ids
+    miss = nb < 0  # no neighbour there: a zero-weight self loop keeps every row 26 long (CSR without sorting)
+    nb[miss] = np.broadcast_to(np.arange(n, dtype=np.int32), nb.shape)[miss]
+    w = (c[None, :] + c[nb]) * (0.5 * np.sqrt(np.sum((offsets * sp) ** 2, axis=1)))[:, None]
+    w[miss] = 0.0
+    graph = csr_matrix((w.T.ravel(), nb.T.ravel(), np.arange(0, nb.size + 1, nb.shape[0], dtype=np.int32)),
+                       shape=(n, n))
+    i0, i1 = int(padded[tuple(x + 1 for x in start)]), int(padded[tuple(x + 1 for x in end)])
+    dist, pred = dijkstra(graph, directed=True, indices=i0, return_predecessors=True)
     if not np.isfinite(dist[i1]):
         return None, np.inf
     chain = [i1]
