@@ -26,10 +26,17 @@ from .params import DEFAULT_CELL_MM, UnfoldParameters
 from .progress import Progress
 from .report import Report
 
-__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "DEFAULT_CELL_MM", "check_volume"]
+__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "stage_names", "DEFAULT_CELL_MM", "check_volume"]
 
 #: The run's parts and their share of the progress bar.
 STAGES = [("front end", 0.0, 0.24), ("method", 0.24, 0.93), ("quality", 0.93, 1.0)]
+
+
+def stage_names(method: str) -> list[str]:
+    """Every stage name a run of ``method`` reports to the progress callback, in order."""
+    from .frontend import FRONT_STAGES
+
+    return [n for n, _, _ in FRONT_STAGES] + [n for n, _, _ in get_method(method).stages] + ["quality"]
 
 
 @dataclass

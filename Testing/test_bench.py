@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from StomachUnfoldLib import bench
+from StomachUnfoldEval import bench
 
 
 def test_quick_stability_bench_reports_explicit_divergence_as_data(tmp_path):

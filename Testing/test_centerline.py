@@ -1,6 +1,5 @@
 """Tests of StomachUnfoldLib.centerline on analytic tubes (straight, J and U shaped), with anisotropic
 spacing and flipped, permuted direction matrices."""
-import os
 import time
 
 import numpy as np
@@ -10,8 +9,7 @@ from StomachUnfoldLib.centerline import Centerline, compute_centerline
 from StomachUnfoldLib.errors import AnatomyError, Cancelled, PointError
 from StomachUnfoldLib.preprocessing import air_region, bounding_box, snap_to_region
 from StomachUnfoldLib.progress import Progress
-from test_preprocessing import (CARDIA, GEOMETRIES, PYLORUS, R, REAL_CT, REAL_SEG, _seg_dist, big_ct,
-                                j_axis_distance, make_abdomen, make_grid, voxel_points)
+from conftest import (CARDIA, GEOMETRIES, PYLORUS, R, REAL_CT_NAME, REAL_SEG_NAME, shared_file, big_ct, j_axis_distance, make_abdomen, make_grid, seg_dist, voxel_points)
 
 
 def tube(spacing, direction, axis_dist, lo, hi, radius):
@@ -55,7 +53,7 @@ R_STRAIGHT = 10.0
 def test_straight_tube_axis_and_radius(geom):
     spacing, direction = GEOMETRIES[geom]
     a, b, r = A_STRAIGHT, B_STRAIGHT, R_STRAIGHT
-    vol, lumen = tube(spacing, direction, lambda q: _seg_dist(q, a, b), lo=(-40, -30, -10), hi=(45, 35, 130),
+    vol, lumen = tube(spacing, direction, lambda q: seg_dist(q, a, b), lo=(-40, -30, -10), hi=(45, 35, 130),
                       radius=r)
     u = (b - a) / np.linalg.norm(b - a)
     c0, c1 = a + 12.0 * u, b - 12.0 * u  # on the axis, 12 mm from the rounded ends
@@ -113,8 +111,8 @@ def test_j_tube_central_and_inside(stomach):
 def u_axis_distance(q):
     """Distance (mm) to a U: limbs x = -25 and x = +25 from z = 100 down to 40, joined by a half circle below."""
     q = np.atleast_2d(q)
-    d1 = _seg_dist(q, np.array([-25.0, 0, 100]), np.array([-25.0, 0, 40]))
-    d2 = _seg_dist(q, np.array([25.0, 0, 100]), np.array([25.0, 0, 40]))
+    d1 = seg_dist(q, np.array([-25.0, 0, 100]), np.array([-25.0, 0, 40]))
+    d2 = seg_dist(q, np.array([25.0, 0, 100]), np.array([25.0, 0, 40]))
     rel = q - np.array([0.0, 0, 40])
     d3 = np.where(rel[:, 2] <= 0, np.hypot(np.hypot(rel[:, 0], rel[:, 2]) - 25.0, rel[:, 1]), np.inf)
     return np.minimum(np.minimum(d1, d2), d3)
@@ -219,13 +217,13 @@ def test_full_size_speed():
     assert 0.85 * 150.0 < cl.length_mm < 150.0  # 70 + 80 mm along the L-shaped axis; the corner is cut
 
 
-@pytest.mark.skipif(not (os.path.exists(REAL_CT) and os.path.exists(REAL_SEG)), reason="real CT not available")
 def test_real_ct_slab_with_stomach_label():
     import SimpleITK as sitk
 
     from StomachUnfoldLib.geometry import Volume
     from StomachUnfoldLib.preprocessing import lumen_from_mask
 
+    REAL_CT, REAL_SEG = shared_file(REAL_CT_NAME), shared_file(REAL_SEG_NAME)
     img = sitk.ReadImage(REAL_CT)
     ct = Volume.from_sitk(img)
     seg = sitk.Resample(sitk.ReadImage(REAL_SEG), img, sitk.Transform(), sitk.sitkNearestNeighbor, 0,

@@ -6,7 +6,7 @@ from StomachUnfoldLib.correspondence import Correspondence, point_tet_distance
 from StomachUnfoldLib.errors import InputError
 from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldLib.unfolded_volume import build_unfolded_volume, hex_to_tets, make_grid
-from test_unfolded_volume import FLIP, _bent, _two_blocks, block, ramp_ct, rotation
+from conftest import FLIP, bent_slab, block, ramp_ct, rotation, two_blocks
 
 
 def _slab(direction, n=(10, 3, 2), cell_vox=(5, 5, 2)):
@@ -25,7 +25,7 @@ def _inside_points(ct, ijk, n, rng, shrink=1e-3):
 @pytest.mark.parametrize("direction", [np.eye(3), FLIP])
 def test_round_trip_under_bending_is_exact(direction):
     ct, rest, hexes, ijk = _slab(direction)
-    deformed = _bent(rest, 25.0)
+    deformed = bent_slab(rest, 25.0)
     corr = Correspondence(rest, deformed, hexes)
     rng = np.random.default_rng(1)
     p = _inside_points(ct, ijk, 500, rng)
@@ -89,7 +89,7 @@ def test_matches_the_unfolded_volume_voxel_by_voxel():
     """to_original of an unfolded voxel centre is exactly where build_unfolded_volume sampled the CT."""
     ct = ramp_ct(FLIP)
     rest, hexes, _ = block((6, 3, 2), (5, 5, 3), ct)
-    deformed = _bent(rest, 20.0)
+    deformed = bent_slab(rest, 20.0)
     grid = make_grid(deformed, rotation([0, 1, 0], 15), 0.6)
     out, info = build_unfolded_volume(ct, rest, deformed, hexes, grid, dtype=np.float32)
     corr = Correspondence(rest, deformed, hexes, view_axis=grid.axes[:, 2])
@@ -106,7 +106,7 @@ def test_matches_the_unfolded_volume_voxel_by_voxel():
 
 def test_folds_resolve_towards_the_viewer_like_the_unfolded_volume():
     ct = ramp_ct()
-    rest, hexes, deformed, na = _two_blocks(ct, 3.5)
+    rest, hexes, deformed, na = two_blocks(ct, 3.5)
     lo, hi = deformed[:na].min(0), deformed[:na].max(0)
     q = np.array([(lo + hi) / 2 + [0.3, -0.2, 2.0]])  # inside both layers
     assert np.all(q[0, 2] > lo[2] + 3.5)
@@ -133,7 +133,7 @@ def test_point_tet_distance_is_euclidean():
 
 def test_landmarks_nan_and_input_checks():
     ct, rest, hexes, ijk = _slab(np.eye(3))
-    deformed = _bent(rest, 25.0)
+    deformed = bent_slab(rest, 25.0)
     corr = Correspondence(rest, deformed, hexes)
     inside = rest.mean(0) + [0.3, 0.2, 0.1]
     res = corr.map_landmarks({"a": inside, "far": [1e4, 0, 0], "nan": [np.nan, 0, 0]}, "to_unfolded")

@@ -4,7 +4,7 @@ import pytest
 from StomachUnfoldLib.errors import InputError
 from StomachUnfoldLib.incision_line import (compute_incision_line, cutting_directions, incision_from_curve,
                                             incision_surface_points)
-from tubes import make_tube
+from conftest import make_tube
 
 
 def test_bent_tube_incision_on_convex_side_and_on_inner_wall():

@@ -9,9 +9,10 @@ from StomachUnfoldLib import io as suio
 from StomachUnfoldLib.cli import main
 from StomachUnfoldLib.errors import Cancelled, PointError
 from StomachUnfoldLib.geometry import lps_to_ras
-from StomachUnfoldLib.phantom import make_phantom, write_phantom
+from StomachUnfoldEval.phantom import make_phantom, write_phantom
 from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
-from StomachUnfoldLib.quality import layer_runs, marker_report, overlap_fraction, visible_markers
+from StomachUnfoldEval.markers import marker_report, visible_markers
+from StomachUnfoldLib.quality import layer_runs, overlap_fraction
 
 # grid of 3 voxels on the tiny (about 1.8 mm) phantoms: cells of about 5.4 mm, like the paper's d = 8 at 0.7 mm
 TINY = UnfoldParameters(grid_size=3, wall_thickness_mm=4.0)
@@ -62,12 +63,15 @@ def test_output_axes_and_orientation(j_run):
 def test_report_contents(j_run):
     ct, truth, res = j_run
     r = res.report
-    for key in ("parameters", "seconds", "iterations", "D_trace", "model", "peak_memory_mb", "warnings"):
+    for key in ("parameters", "seconds", "method", "peak_memory_mb", "warnings", "quality"):
         assert key in r
-    assert r["iterations"] == len(r["D_trace"]) - 1
-    assert r["model"]["hexahedra"] > 100 and r["model"]["springs"] > r["model"]["vertices"]
-    assert r["D_trace"][-1] < r["D_trace"][0]
-    json.dumps(r)
+    m = r["method"]
+    assert m["name"] == "massspring"
+    sim = m["simulation"]
+    assert sim["iterations"] == len(sim["D_trace"]) - 1
+    assert m["model"]["hexahedra"] > 100 and m["model"]["springs"] > m["model"]["vertices"]
+    assert sim["D_trace"][-1] < sim["D_trace"][0]
+    assert json.loads(r.to_json())["method"]["simulation"]["iterations"] == sim["iterations"]
 
 
 def test_correspondence_round_trip_on_markers(j_run):

@@ -1,6 +1,5 @@
 """Tests of StomachUnfoldLib.preprocessing on analytic phantoms: a gas-filled J-shaped stomach tube with
 a tissue wall inside an elliptic body, with lungs, colon gas and outside air placed near it."""
-import os
 import time
 
 import numpy as np
@@ -11,87 +10,7 @@ from StomachUnfoldLib.errors import AnatomyError, InputError, PointError
 from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldLib.preprocessing import (MAX_STOMACH_ML, air_region, bounding_box, lumen_from_mask,
                                             snap_to_region, wall_region)
-
-R = 12.0       # lumen radius (mm)
-WALL = 4.0     # tissue wall (mm)
-BEND = 25.0    # bend radius of the J (mm)
-CARDIA = np.array([15.0, 0.0, 105.0])
-PYLORUS = np.array([-30.0, 0.0, 30.0])
-# axis: (15,0,110) -> (15,0,55) straight, quarter circle about (-10,0,55) to (-10,0,30), then to (-35,0,30)
-AXIS_LENGTH = 55.0 + BEND * np.pi / 2 + 25.0
-TUBE_ML = (np.pi * R ** 2 * AXIS_LENGTH + 4.0 / 3.0 * np.pi * R ** 3) / 1000.0
-
-GEOMETRIES = {
-    "iso1.5": (np.full(3, 1.5), np.eye(3)),
-    "aniso1x1x2.5": (np.array([1.0, 1.0, 2.5]), np.eye(3)),
-    # i runs to the right, j superior, k posterior-to-anterior: flipped (det -1), SI along j
-    "permuted-flipped": (np.array([1.2, 2.0, 1.0]), np.array([[-1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])),
-}
-
-
-def _seg_dist(q, a, b):
-    """Distance (mm) from points q (N,3) to the segment a-b."""
-    ab = b - a
-    t = np.clip(((q - a) @ ab) / (ab @ ab), 0.0, 1.0)
-    return np.linalg.norm(q - (a + t[:, None] * ab), axis=1)
-
-
-def j_axis_distance(q):
-    """Distance (mm) from LPS points q (N,3) to the axis of the J-shaped stomach tube."""
-    q = np.atleast_2d(q)
-    d1 = _seg_dist(q, np.array([15.0, 0, 110]), np.array([15.0, 0, 55]))
-    d3 = _seg_dist(q, np.array([-10.0, 0, 30]), np.array([-35.0, 0, 30]))
-    rel = q - np.array([-10.0, 0, 55])
-    rho = np.hypot(rel[:, 0], rel[:, 2])
-    in_arc = (rel[:, 0] >= 0) & (rel[:, 2] <= 0)
-    d2 = np.where(in_arc, np.hypot(rho - BEND, rel[:, 1]), np.inf)
-    return np.minimum(np.minimum(d1, d3), d2)
-
-
-def make_grid(spacing, direction, lo=(-80.0, -65.0, 0.0), hi=(80.0, 65.0, 140.0)):
-    """Empty int16 Volume whose grid covers the LPS box [lo, hi] (mm) with the given spacing and direction."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    D = np.asarray(direction, float)
-    corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
-    local = corners @ D
-    n = np.floor((local.max(0) - local.min(0)) / spacing).astype(int) + 1
-    return Volume(np.zeros(n[::-1], np.int16), spacing, D @ local.min(0), D)
-
-
-def voxel_points(vol):
-    """LPS centres (K,J,I,3) of all voxels of vol."""
-    k, j, i = np.indices(vol.array.shape)
-    return vol.index_to_lps(np.stack([i, j, k], -1).reshape(-1, 3)).reshape(vol.array.shape + (3,))
-
-
-def make_abdomen(spacing, direction, gas=True, septum=False):
-    """Phantom CT (HU) and its parts: J stomach (gas or fluid), wall, lungs, colon gas and outside air.
-
-    Returns (ct, parts) with bool masks "lumen", "wall", "lungs", "colon", "outside" on ct's grid.
-    """
-    vol = make_grid(spacing, direction)
-    p = voxel_points(vol)
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    body = (x / 70.0) ** 2 + (y / 55.0) ** 2 < 1.0
-    # a fold of outside air reaching to 6 mm from the stomach lumen (through the skin at the back)
-    fold = (x > 5) & (x < 25) & (y < -18) & (z > 60) & (z < 90)
-    outside = ~body | fold
-    d = j_axis_distance(p.reshape(-1, 3)).reshape(vol.array.shape)
-    lumen = d < R
-    if septum:  # a tissue septum cuts the lumen in two at z = 75..79 mm
-        lumen &= ~((z > 75) & (z < 79))
-    wall = (d >= R) & (d < R + WALL) | (septum & (d < R) & ~lumen)
-    lungs = ((np.abs(x) - 40) / 25.0) ** 2 + ((y - 10) / 30.0) ** 2 + ((z - 145) / 22.0) ** 2 < 1.0
-    colon = np.linalg.norm(p - np.array([39.0, 0.0, 60.0]), axis=-1) < 8.0
-    arr = np.full(vol.array.shape, 40, np.int16)
-    arr[wall] = 55
-    arr[lungs] = -850
-    arr[colon] = -1000
-    arr[lumen] = -1000 if gas else 20
-    arr[outside] = -1000
-    parts = dict(lumen=lumen, wall=wall, lungs=lungs & ~outside, colon=colon, outside=outside)
-    return vol.with_array(arr), parts
-
+from conftest import (CARDIA, GEOMETRIES, PYLORUS, R, REAL_CT_NAME, REAL_SEG_NAME, TUBE_ML, WALL, big_ct, j_axis_distance, make_abdomen, make_grid, shared_file, voxel_points)
 
 @pytest.fixture(scope="module", params=list(GEOMETRIES))
 def abdomen(request):
@@ -305,26 +224,6 @@ def test_bounding_box():
 
 
 # ----------------------------------------------------------------------------------------- full size
-def big_ct():
-    """512x512x400 int16 CT at 0.7 mm with a body, lungs and a ~0.9 L J-shaped gas-filled stomach."""
-    K, J, I = 400, 512, 512
-    arr = np.full((K, J, I), 40, np.int16)
-    y, x = np.mgrid[0:J, 0:I]
-    arr[:, ((x - 256) / 240.0) ** 2 + ((y - 256) / 190.0) ** 2 >= 1] = -1000
-    arr[300:, 120:380, 60:230] = -850   # right lung, touching the top
-    arr[300:, 120:380, 290:460] = -850  # left lung
-    kk, jj, ii = [a.astype(np.float32) * 0.7 for a in np.ogrid[100:380, 170:350, 200:460]]
-    cx, cy = 250.0, 180.0
-    d1 = np.sqrt((ii - cx) ** 2 + (jj - cy) ** 2 + (kk - np.clip(kk, 120, 200)) ** 2)
-    d2 = np.sqrt((ii - np.clip(ii, cx - 90, cx)) ** 2 + (jj - cy) ** 2 + (kk - 120) ** 2)
-    d = np.minimum(d1, d2)
-    blk = arr[100:380, 170:350, 200:460]
-    blk[d < 34] = 50
-    blk[d < 30] = -1000
-    ml = (np.pi * 30 ** 2 * 170 + 4 / 3 * np.pi * 30 ** 3) / 1000
-    return Volume(arr, np.full(3, 0.7)), np.array([cx, cy, 190.0]), np.array([cx - 80, cy, 120.0]), ml
-
-
 @pytest.mark.slow
 def test_air_region_full_size_speed():
     ct, a, b, ml = big_ct()
@@ -341,14 +240,10 @@ def test_air_region_full_size_speed():
 
 
 # ----------------------------------------------------------------------------------------- real CT
-REAL_CT = "/work/shared/data/02_totalseg_example_ct_dicom_slab_2mm.nii.gz"
-REAL_SEG = "/work/shared/data/02_totalseg_example_ct_dicom_slab_seg117_stomach6.nii.gz"
-
-
-@pytest.mark.skipif(not (os.path.exists(REAL_CT) and os.path.exists(REAL_SEG)), reason="real CT not available")
 def test_real_ct_slab_stomach_air():
     import SimpleITK as sitk
 
+    REAL_CT, REAL_SEG = shared_file(REAL_CT_NAME), shared_file(REAL_SEG_NAME)
     img = sitk.ReadImage(REAL_CT)
     ct = Volume.from_sitk(img)
     seg = sitk.Resample(sitk.ReadImage(REAL_SEG), img, sitk.Transform(), sitk.sitkNearestNeighbor, 0,

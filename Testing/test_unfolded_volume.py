@@ -9,51 +9,7 @@ from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldLib.progress import Progress
 from StomachUnfoldLib.unfolded_volume import (UnfoldedGrid, apply_affine, build_unfolded_volume, hex_to_tets,
                                               label_map, make_grid, tet_affine, tet_volumes)
-
-HEX_OFFSETS = np.array([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)])
-RAMP = np.array([3.0, -2.0, 1.0])  # HU per mm along L, P, S
-RAMP0 = 100.0
-
-
-def rotation(axis, deg):
-    """Rotation matrix about an axis (Rodrigues)."""
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    t = np.radians(deg)
-    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
-
-
-def ramp(p):
-    """The CT's value (HU) at LPS points: a linear function, so trilinear sampling reproduces it exactly."""
-    return np.asarray(p, float) @ RAMP + RAMP0
-
-
-def ramp_ct(direction=np.eye(3), spacing=(0.8, 0.9, 2.0), shape_kji=(30, 70, 70), origin=(-20.0, 15.0, -30.0)):
-    """A CT whose voxel values are ramp() of their LPS centre (float32)."""
-    vol = Volume(np.zeros(shape_kji, np.float32), spacing, origin, direction)
-    k, j, i = np.indices(shape_kji)
-    P = vol.index_to_lps(np.stack([i.ravel(), j.ravel(), k.ravel()], 1))
-    return vol.with_array(ramp(P).reshape(shape_kji).astype(np.float32))
-
-
-def block(n, cell_vox, ct: Volume, lo_vox=(5, 5, 3)):
-    """A structured block of n=(ni,nj,nk) cells of cell_vox voxels each, aligned with ct's voxel axes.
-
-    Returns rest vertices (LPS mm), hexes (VTK order) and the vertices' continuous CT indices.
-    """
-    ni, nj, nk = n
-    idx = np.stack(np.meshgrid(np.arange(ni + 1), np.arange(nj + 1), np.arange(nk + 1), indexing="ij"), -1)
-    idx = idx.reshape(-1, 3)
-    ijk = np.asarray(lo_vox, float) + idx * np.asarray(cell_vox, float)
-    verts = ct.index_to_lps(ijk)
-    vid = np.arange(len(verts)).reshape(ni + 1, nj + 1, nk + 1)
-    cells = np.stack(np.meshgrid(np.arange(ni), np.arange(nj), np.arange(nk), indexing="ij"), -1).reshape(-1, 3)
-    c = cells[:, None, :] + HEX_OFFSETS[None]
-    return verts, vid[c[..., 0], c[..., 1], c[..., 2]], ijk
-
-
-FLIP = rotation([1, 2, 3], 25) @ np.diag([1.0, -1.0, 1.0])  # det -1, oblique
-
+from conftest import FLIP, bent_slab, block, ramp, ramp_ct, rotation, two_blocks
 
 # ----------------------------------------------------------------------------------------------- tetrahedra
 @pytest.mark.parametrize("direction", [np.eye(3), FLIP])
@@ -180,21 +136,11 @@ def test_known_affine_deformation_samples_the_inverse_mapped_ramp(direction):
     assert info_m["inverted_tets"] == info_m["tets"]
 
 
-def _two_blocks(ct, up_mm):
-    """Two separate 2x2x1-cell blocks of the CT; in the deformed state B lies on A, raised by up_mm along +S."""
-    ra, ha, ia = block((2, 2, 1), (6, 6, 3), ct, lo_vox=(5, 5, 3))
-    rb, hb, ib = block((2, 2, 1), (6, 6, 3), ct, lo_vox=(30, 40, 15))
-    rest = np.concatenate([ra, rb])
-    hexes = np.concatenate([ha, hb + len(ra)])
-    deformed = np.concatenate([ra, ra + [0.0, 0.0, up_mm]])
-    return rest, hexes, deformed, len(ra)
-
-
 def test_overlap_is_counted_and_the_layer_nearest_the_viewer_wins():
     ct = ramp_ct()
     # cells are 6 mm thick (2 mm x 3 voxels); raised by 3.5 mm, B's tetrahedra all have centroids above A's
     # (Kuhn centroids sit at 1/4, 1/2, 3/4 of a cell's height), so the per-tet rule makes a whole layer win
-    rest, hexes, deformed, na = _two_blocks(ct, 3.5)
+    rest, hexes, deformed, na = two_blocks(ct, 3.5)
     shift_b = rest[na:][0] - deformed[na:][0]  # B's deformed -> rest translation
     for kdir in (1.0, -1.0):  # viewer above (+S) then below (-S)
         axes = np.diag([1.0, kdir, kdir])
@@ -267,15 +213,6 @@ def test_progress_is_reported_and_cancel_stops():
         build_unfolded_volume(ct, rest, rest, hexes, grid, progress=Progress(lambda s, f: f < 0.5))
 
 
-def _bent(rest, R):
-    """Bend a slab around a cylinder of radius R (mm) about the P axis through its centre (non-affine)."""
-    c = rest.mean(0)
-    x = rest - c
-    th = x[:, 0] / R
-    r = R + x[:, 2]
-    return c + np.stack([r * np.sin(th), x[:, 1], r * np.cos(th) - R], 1)
-
-
 def _brute_force_inside(grid, deformed, tets):
     """(voxels, tets) barycentric minimum of every voxel centre in every tetrahedron (small cases only)."""
     k, j, i = np.indices(grid.shape_kji)
@@ -292,7 +229,7 @@ def test_scan_conversion_matches_brute_force_and_chunking(fold):
     """Labels equal a brute-force inside test on a bent (non-affine) slab; chunk size does not matter."""
     ct = ramp_ct()
     rest, hexes, _ = block((4, 2, 2), (5, 5, 3), ct)
-    deformed = _bent(rest, 14.0 if fold else 30.0)  # a tight (14 mm) or gentle (30 mm) bend
+    deformed = bent_slab(rest, 14.0 if fold else 30.0)  # a tight (14 mm) or gentle (30 mm) bend
     if fold:  # lift the last column of cells over the first: a second layer over the first
         x = rest[:, 0]
         right = x > np.quantile(x, 0.7)
@@ -329,7 +266,7 @@ def test_performance_2e5_tets_3e7_voxels():
     ct = Volume(np.random.default_rng(0).integers(-1000, 1000, shape).astype(np.int16), (0.7, 0.7, 1.5))
     rest, hexes, _ = block((64, 64, 8), (7, 7, 3), ct, lo_vox=(2, 2, 2))
     assert 1.9e5 < 6 * len(hexes) < 2.1e5
-    deformed = _bent(rest, 200.0)
+    deformed = bent_slab(rest, 200.0)
     grid = make_grid(deformed, np.eye(3), 0.7)
     assert 2e7 < grid.n_voxels < 5e7
     t = time.perf_counter()

@@ -1,8 +1,8 @@
 import numpy as np
 
-from StomachUnfoldLib.unfolding_force import (base_line, destination_points, distance_metric, unfolded_plane,
+from StomachUnfoldLib.unfolding_force import (base_line, distance_metric, unfolded_plane,
                                               unfolding_force, unfolding_targets, wall_depth)
-from test_wall_model import _model
+from conftest import tube_model
 
 
 def test_plane_normal_points_to_convex_side_of_a_bent_incision():
@@ -31,7 +31,7 @@ def test_base_line_keeps_arc_length_and_orientation():
 
 
 def test_destinations_at_pi_epsilon_on_the_correct_side():
-    vol, lumen, wall, cl, inc, m = _model("straight")
+    vol, lumen, wall, cl, inc, m = tube_model("straight")
     depth = wall_depth(m.vertices, lumen, vol)
     tg = unfolding_targets(m, inc, cl, depth=depth)
     # distance of each destination from the base line in the plane equals pi * epsilon
@@ -48,7 +48,7 @@ def test_destinations_at_pi_epsilon_on_the_correct_side():
 
 
 def test_wall_depth_signed():
-    vol, lumen, wall, cl, inc, m = _model("straight")
+    vol, lumen, wall, cl, inc, m = tube_model("straight")
     pts = np.array([[0, 0, 60.0], [24.0, 0, 60], [0, 21.0, 60]])
     dep = wall_depth(pts, lumen, vol)
     assert dep[0] < -15 and 2.0 < dep[1] < 5.5 and -0.5 < dep[2] < 2.5

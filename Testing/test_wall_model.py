@@ -1,18 +1,8 @@
 import numpy as np
 import pytest
 
-from StomachUnfoldLib.incision_line import compute_incision_line, incision_surface_points
-from StomachUnfoldLib.wall_model import build_wall_model, grid_steps, model_to_vtk, write_vtu
-from tubes import make_tube
-
-
-def _model(kind="straight", d=4, spacing=1.5, direction=None, cut=True):
-    vol, lumen, wall, cl = make_tube(kind, spacing=spacing, direction=direction)
-    inc = compute_incision_line(lumen, vol, cl)
-    cell = float(np.max(np.array(grid_steps(vol.spacing, d)) * vol.spacing))
-    pts = incision_surface_points(inc, cl, 4 + 2 * cell, cell, 0.3 * cell, cell) if cut else None
-    openings = [(cl.points_lps[0], -cl.tangents[0]), (cl.points_lps[-1], cl.tangents[-1])]
-    return vol, lumen, wall, cl, inc, build_wall_model(vol, wall, lumen, d, pts, openings)
+from StomachUnfoldLib.wall_model import grid_steps, model_to_vtk, write_vtu
+from conftest import tube_model
 
 
 def _signed_volumes(P, hexes):
@@ -29,7 +19,7 @@ def test_grid_steps_follow_slice_spacing():
 
 
 def test_model_covers_wall_and_has_paper_springs():
-    vol, lumen, wall, cl, inc, m = _model()
+    vol, lumen, wall, cl, inc, m = tube_model()
     # every hexahedron is a cube of d voxels (1.5 mm * 4 = 6 mm edges)
     assert np.allclose(np.abs(_signed_volumes(m.vertices, m.hexes)), 6.0 ** 3)
     # springs: edges (6 mm), face diagonals (6*sqrt2) and body diagonals (6*sqrt3), no duplicates
@@ -47,8 +37,8 @@ def test_model_covers_wall_and_has_paper_springs():
 
 
 def test_incision_cuts_the_tube_open():
-    *_, m_closed = _model(cut=False)
-    *_, inc, m = _model()
+    *_, m_closed = tube_model(cut=False)
+    *_, inc, m = tube_model()
     assert m.removed_incision > 0
     # around the axis the closed tube covers all angles; the cut one leaves a gap on the incision side (+x)
     def largest_gap(model):
@@ -65,14 +55,14 @@ def test_incision_cuts_the_tube_open():
 @pytest.mark.parametrize("direction", [np.diag([1.0, -1.0, 1.0]),
                                        np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, 1]])])
 def test_model_in_lps_with_flipped_direction(direction):
-    vol, lumen, wall, cl, inc, m = _model(direction=direction)
+    vol, lumen, wall, cl, inc, m = tube_model(direction=direction)
     r = np.linalg.norm(m.vertices[:, :2], axis=1)
     assert r.min() > 20.0 - 6.0 * 1.8 and r.max() < 24.0 + 6.0 * 1.8
 
 
 def test_vtu_round_trip(tmp_path):
     import vtk
-    *_, m = _model()
+    *_, m = tube_model()
     write_vtu(m.vertices, m.hexes, tmp_path / "m.vtu")
     r = vtk.vtkXMLUnstructuredGridReader()
     r.SetFileName(str(tmp_path / "m.vtu"))
