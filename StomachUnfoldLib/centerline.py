@@ -238,7 +238,7 @@ def _snap_any(mask: np.ndarray, volume: Volume, p: np.ndarray, max_mm: float):
 
 
 def minimal_path(cost: np.ndarray, start, end, sampling=(1.0, 1.0, 1.0)):
-    """Minimal-cost 26-connected path start -> end (k, j, i) as skimage's MCP_Geometric: ((n, 3) int, cost) or (None, inf).
+    """Minimal-cost 26-connected path start -> end (k, j, i), as MCP_Geometric: ((n, 3) int, cost) or (None, inf).
 
     A step between neighbours a and b costs ``(cost[a] + cost[b]) / 2 * |step|`` (step length in the
     ``sampling`` units, per array axis); voxels of infinite or negative cost are impassable. Dijkstra on

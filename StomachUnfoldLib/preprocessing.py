@@ -257,7 +257,7 @@ def _touches_faces(mask: np.ndarray, axes) -> bool:
 
 
 def flood_fill(image: np.ndarray, seed) -> np.ndarray:
-    """Voxels 6-connected to ``seed`` (k, j, i) with its value (bool), as skimage's ``flood(image, seed, connectivity=1)``."""
+    """Bool mask of the voxels 6-connected to ``seed`` (k, j, i) holding its value (skimage's flood, connectivity=1)."""
     import SimpleITK as sitk
 
     image = np.asarray(image, bool)
