@@ -105,6 +105,9 @@ class SurfaceParameters(_Group):
                                      "the mean circumference)", 8, 100000)
     lscm_boundary: str = _p("tube", "lscm: openings on two lines with the seam glued (tube), Levy's two pins "
                             "(two_pins) or the pin-free spectral form (spectral)", choices=LSCM_BOUNDARIES)
+    isometric_surface: str = _p("opened", "isometric: the whole lumen surface opened where the graded mucosa ends "
+                                "(opened) or trimmed at the centreline's end planes (trimmed)",
+                                choices=("opened", "trimmed"))
 
 
 @dataclass

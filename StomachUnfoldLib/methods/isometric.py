@@ -15,17 +15,19 @@ no overlap unless the flat map flips triangles (counted in the report).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..correspondence import MapCorrespondence
 from ..errors import AnatomyError, SimulationError
 from ..frontend import timed_stage
-from ..surface import cut_surface, lscm, signed_area_2d, sample_flat_map, tube_conformal
+from ..surface import (compact, cut_surface, inner_surface, largest_component, perpendicular, sample_flat_map,
+                       signed_area_2d, smooth_tangents, unit, vertex_normals)
 from . import Method, Unfolding, register
 
 __all__ = ["IsometricFlattening", "arap", "triangle_frames", "cot_laplacian", "stretch_stats", "cut_along_path",
-           "MAX_MESH_VERTICES"]
+           "open_surface", "taubin_smooth", "IsoSurface", "MAX_MESH_VERTICES"]
 
 MAX_MESH_VERTICES = 40000
 
@@ -188,32 +190,46 @@ def orient_rigid(uv: np.ndarray, cut, s: float) -> tuple[np.ndarray, float]:
     return uv - uv.min(0) + s, flipped
 
 
-def cut_along_path(v: np.ndarray, f: np.ndarray, path: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cut an oriented manifold mesh open along a simple vertex path: its interior vertices are duplicated.
+def cut_along_path(v: np.ndarray, f: np.ndarray, path: np.ndarray, ends_on_boundary: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cut an oriented manifold mesh open along a simple vertex path by duplicating the path's vertices.
 
-    The triangles on one side (swept counter-clockwise about each path vertex from the previous path vertex to
-    the next) get the copies. Returns (v with copies appended, f renumbered, source vertex of each copy).
+    Without ``ends_on_boundary`` the path's interior vertices are duplicated (a slit); with it the path runs from
+    one boundary to another and its end vertices are split too. The triangles on one side (swept
+    counter-clockwise about each path vertex from the previous path vertex to the next) get the copies.
+    Returns (v with the copies appended, f renumbered, source vertex of each copy).
     """
     path = np.asarray(path, np.int64)
     on = np.zeros(len(v), bool)
-    on[path[1:-1]] = True
+    on[path if ends_on_boundary else path[1:-1]] = True
     tri_of = {}
-    sel = np.flatnonzero(on[f].any(1))
-    for t in sel:
-        a, b, c = f[t]
+    heads = set()
+    for t in np.flatnonzero(on[f].any(1)):
+        a, b, c = (int(x) for x in f[t])
         for p, q, r in ((a, b, c), (b, c, a), (c, a, b)):
             if on[p]:
-                tri_of[(int(p), int(q))] = (int(t), int(r))
+                tri_of[(p, q)] = (int(t), r)
+                heads.add((p, r))
     f = f.copy()
     copies = []
     nv = len(v)
-    for n in range(1, len(path) - 1):
-        c, prev, nxt = int(path[n]), int(path[n - 1]), int(path[n + 1])
+    idx = range(len(path)) if ends_on_boundary else range(1, len(path) - 1)
+    for n in idx:
+        c = int(path[n])
+        nxt = int(path[n + 1]) if n + 1 < len(path) else None
+        if n > 0:
+            q = int(path[n - 1])
+        else:                                     # start on a boundary: the fan's first edge (no triangle before it)
+            firsts = [qq for (pp, qq) in tri_of if pp == c and (c, qq) not in heads]
+            if not firsts:
+                raise AnatomyError("the cut path does not start on an opening of the lumen surface")
+            q = firsts[0]
         new = nv + len(copies)
         copies.append(c)
-        q = prev
-        for _ in range(64):                       # walk the fan from the edge (c, prev) to the edge (c, next)
+        for _ in range(256):                      # walk the fan counter-clockwise up to the next path edge
             if (c, q) not in tri_of:
+                if nxt is None:
+                    break                         # the end vertex: up to the fan's last edge
                 raise AnatomyError("the cut path crosses a non-manifold or boundary part of the lumen surface")
             t, r = tri_of[(c, q)]
             f[t][f[t] == c] = new
@@ -224,6 +240,194 @@ def cut_along_path(v: np.ndarray, f: np.ndarray, path: np.ndarray) -> tuple[np.n
             raise AnatomyError("the cut path could not be followed around a vertex of the lumen surface")
     src = np.array(copies, np.int64)
     return np.concatenate([v, v[src]]), f, src
+
+
+def _edges(f: np.ndarray) -> np.ndarray:
+    """Unique undirected edges (E,2) of triangles f."""
+    return np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+
+
+def taubin_smooth(v: np.ndarray, f: np.ndarray, iterations: int = 10, lam: float = 0.5, mu: float = -0.53,
+                  fixed: np.ndarray | None = None) -> np.ndarray:
+    """Taubin lambda/mu smoothing (V,3 mm) with the uniform Laplacian: removes voxel staircases without shrinking."""
+    from scipy.sparse import coo_matrix, diags
+
+    e = _edges(f)
+    nv = len(v)
+    A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv)).tocsr()
+    deg = np.asarray(A.sum(1)).ravel()
+    W = diags(1.0 / np.maximum(deg, 1)) @ A
+    x = v.copy()
+    move = np.ones(nv, bool) if fixed is None else ~fixed
+    for _ in range(iterations):
+        for k in (lam, mu):
+            d = W @ x - x
+            x[move] += k * d[move]
+    return x
+
+
+@dataclass
+class IsoSurface:
+    """The cut-open inner wall for the isometric method: a disc mesh (LPS mm) with what the flat map needs.
+
+    ``near``: index of each vertex's nearest point of the dense centreline ``Pd`` (0.5 mm steps); ``theta``:
+    angle about the centreline from the incision, unwrapped over the disc (radians); ``partner``: original of
+    each cut copy (-1 elsewhere); ``boundary_edges``: the disc's boundary (cut sides and openings).
+    """
+
+    v: np.ndarray
+    f: np.ndarray
+    vn: np.ndarray
+    near: np.ndarray
+    theta: np.ndarray
+    partner: np.ndarray
+    boundary_edges: np.ndarray
+    Pd: np.ndarray
+    info: dict
+
+
+def _boundary_loops(f: np.ndarray) -> list:
+    """Vertex sets (arrays) of the connected boundary components of a triangle mesh."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    ue, cnt = np.unique(e, axis=0, return_counts=True)
+    b = ue[cnt == 1]
+    if not len(b):
+        return []
+    ids, inv = np.unique(b, return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    g = coo_matrix((np.ones(len(b)), (inv[:, 0], inv[:, 1])), shape=(len(ids), len(ids)))
+    n, lab = connected_components(g, directed=False)
+    return [ids[lab == k] for k in range(n)]
+
+
+def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | None = None,
+                 smooth_iterations: int = 10, margin_mm: float = 1.0, progress=None) -> IsoSurface:
+    """The lumen's whole inner wall (LPS mm), opened where the judge's mucosa ends, cut along the incision: a disc.
+
+    The closed iso-surface of the lumen is smoothed (Taubin), the caps beyond the centreline's end planes that the
+    quality judge leaves out (vertices whose nearest centreline point is an end point, ``margin_mm`` beyond its
+    plane) are removed, which opens the cardia and pylorus ends, and the tube is cut along the shortest mesh path
+    from the cardia opening to the pylorus opening that keeps close to the incision line (Dijkstra, edge cost
+    length x (1 + (distance to the incision / 2 mm)^2)); the path's vertices are duplicated.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, dijkstra
+    from scipy.spatial import cKDTree
+
+    progress = progress or (lambda fraction: None)
+    warnings = [] if warnings is None else warnings
+    crop, lumen, cl, inc = prep.crop, prep.lumen, prep.centerline, prep.incision
+    v, f, mc_step = inner_surface(lumen, crop, max_vertices, prep.mask_given)
+    n_mc = len(v)
+    progress(0.3)
+    f = f[largest_component(len(v), f)]
+    v, f = compact(v, f)
+    v = taubin_smooth(v, f, smooth_iterations)
+    progress(0.5)
+    P = np.asarray(cl.points_lps, float)
+    arc = np.asarray(cl.arclength_mm, float)
+    # the judge's rule (quality.mucosa_points): beyond the plane through an end point, nearest to that end point
+    _, kc = cKDTree(P).query(v)
+    t0, t1 = unit(P[1] - P[0]), unit(P[-1] - P[-2])
+    beyond = (((kc == 0) & ((v - P[0]) @ t0 < -margin_mm))
+              | ((kc == len(P) - 1) & ((v - P[-1]) @ t1 > margin_mm)))
+    for end in (0, len(P) - 1):
+        # no cap beyond this end (a closed end of the lumen at its point): open a small hole around the end point
+        side = (kc == end) & beyond
+        if side.sum() < 3:
+            d = np.linalg.norm(v - P[end], axis=1)
+            beyond |= d < d.min() + 2.0
+    f = f[~beyond[f].any(axis=1)]
+    if len(f) < 100:
+        raise AnatomyError("the lumen surface between the cardia and pylorus has almost no triangles; check the points")
+    f = f[largest_component(len(v), f)]
+    v, f = compact(v, f)
+    # outward (lumen -> wall) orientation: away from the centreline for most vertices
+    a_d = np.linspace(0.0, arc[-1], max(3, int(np.ceil(arc[-1] / 0.5)) + 1))
+    Pd = np.stack([np.interp(a_d, arc, P[:, c]) for c in range(3)], 1)
+    _, near = cKDTree(Pd).query(v)
+    vn, _ = vertex_normals(v, f)
+    if np.mean(np.sum(vn * (v - Pd[near]), 1) > 0) < 0.5:
+        f = f[:, ::-1]
+        vn = -vn
+    loops = _boundary_loops(f)
+    if len(loops) < 2:
+        raise AnatomyError("the lumen surface has no opening at the cardia or the pylorus end; check the points")
+    # the openings: the boundary loops nearest the centreline's two ends (others are holes of the surface)
+    start_loop = min(loops, key=lambda b: near[b].mean())
+    end_loop = max(loops, key=lambda b: near[b].mean())
+    if len(loops) > 2:
+        warnings.append(f"the lumen surface has {len(loops) - 2} holes besides the two openings")
+    progress(0.6)
+    # --- cut path: Dijkstra on the edges, cost favouring closeness to the incision ---------------------------------
+    ip = np.asarray(inc.points_lps, float)
+    seg = np.linalg.norm(np.diff(ip, axis=0), axis=1)
+    dense = [ip[:1]]
+    for a, b, L in zip(ip[:-1], ip[1:], seg):
+        n = max(1, int(np.ceil(L / 0.5)))
+        dense.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    d_inc, _ = cKDTree(np.concatenate(dense)).query(v)
+    e = _edges(f)
+    bnd_v = np.zeros(len(v), bool)
+    for b in loops:
+        bnd_v[b] = True
+    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    cost = length * (1.0 + (0.5 * (d_inc[e[:, 0]] + d_inc[e[:, 1]]) / 2.0) ** 2)
+    # no walking along a boundary: edges with both ends on a boundary are barred
+    cost = np.where(bnd_v[e[:, 0]] & bnd_v[e[:, 1]], np.inf, cost)
+    okc = np.isfinite(cost)
+    G = coo_matrix((cost[okc], (e[okc, 0], e[okc, 1])), shape=(len(v), len(v))).tocsr()
+    src = start_loop[np.argsort(d_inc[start_loop])[:1]]
+    dist, pred = dijkstra(G, directed=False, indices=src, return_predecessors=True)
+    dist, pred = dist[0], pred[0]
+    tgt = end_loop[np.argmin(dist[end_loop])]
+    if not np.isfinite(dist[tgt]):
+        raise AnatomyError("no path on the lumen surface joins the cardia and pylorus openings")
+    path = [int(tgt)]
+    while path[-1] != src[0]:
+        path.append(int(pred[path[-1]]))
+    path = np.array(path[::-1])
+    if bnd_v[path[1:-1]].any():
+        warnings.append("the cut path touches a hole of the surface")
+    progress(0.7)
+    nv0 = len(v)
+    v2, f2, srcv = cut_along_path(v, f, path, ends_on_boundary=True)
+    partner = np.concatenate([np.full(nv0, -1), srcv])
+    vn2 = np.concatenate([vn, vn[srcv]])
+    near2 = np.concatenate([near, near[srcv]])
+    # angle about the centreline from the incision direction, unwrapped over the disc by a breadth-first walk
+    Ts = smooth_tangents(P, arc)
+    Td = unit(np.stack([np.interp(a_d, arc, Ts[:, c]) for c in range(3)], 1))
+    Id = unit(perpendicular(np.stack([np.interp(a_d, arc, inc.directions[:, c]) for c in range(3)], 1), Td))
+    rad = perpendicular(v2 - Pd[near2], Td[near2])
+    e1 = Id[near2]
+    th = np.arctan2(np.sum(rad * np.cross(Td[near2], e1), 1), np.sum(rad * e1, 1))
+    e2 = _edges(f2)
+    G2 = coo_matrix((np.ones(len(e2)), (e2[:, 0], e2[:, 1])), shape=(len(v2), len(v2))).tocsr()
+    order, pr = breadth_first_order(G2, 0, directed=False, return_predecessors=True)
+    theta = th.copy()
+    for x in order[1:]:
+        p_ = pr[x]
+        theta[x] = theta[p_] + np.mod(th[x] - theta[p_] + np.pi, 2 * np.pi) - np.pi
+    theta -= theta.min()
+    progress(0.9)
+    edges2 = np.sort(np.concatenate([f2[:, [0, 1]], f2[:, [1, 2]], f2[:, [2, 0]]]), axis=1)
+    ue, cnt = np.unique(edges2, axis=0, return_counts=True)
+    euler = len(v2) - len(ue) + len(f2)
+    bnd = ue[cnt == 1]
+    n_loops = len(_boundary_loops(f2))
+    if euler != 1 or n_loops != 1:
+        warnings.append(f"the cut surface is not a topological disc (Euler characteristic {euler}, {n_loops} boundary "
+                        "loops); the flat map may fold")
+    info = {"marching_cubes_vertices": n_mc, "marching_cubes_step": mc_step, "vertices": int(len(v2)),
+            "triangles": int(len(f2)), "cut_vertices": int(len(path)),
+            "cut_length_mm": float(np.linalg.norm(np.diff(v[path], axis=0), axis=1).sum()),
+            "euler_characteristic": int(euler), "boundary_loops": n_loops, "boundary_edges": int(len(bnd)),
+            "trimmed_vertices": int(beyond.sum())}
+    return IsoSurface(v2, f2, vn2, near2, theta, partner, bnd, Pd, info)
 
 
 @register
@@ -238,8 +442,10 @@ class IsometricFlattening(Method):
         """Cut the inner wall open along the incision, flatten it near-isometrically, sample the CT along the normals."""
         warnings, seconds = [], {}
         with timed_stage(progress, "surface", seconds, 0.0, 0.3) as report:
-            cut = cut_surface(prep, MAX_MESH_VERTICES, warnings)
-            report(1.0)
+            if prep.params.isometric_surface == "trimmed":
+                cut = cut_surface(prep, MAX_MESH_VERTICES, warnings)
+            else:
+                cut = open_surface(prep, MAX_MESH_VERTICES, warnings, progress=report)
         with timed_stage(progress, "flat map", seconds, 0.3, 0.6) as report:
             t0 = time.perf_counter()
             uv0 = _start_map(cut)
@@ -259,7 +465,7 @@ class IsometricFlattening(Method):
 
 
 def _start_map(cut) -> np.ndarray:
-    """Start map for ARAP (V,2 mm): arc length along the centreline and arc around it (theta times the radius)."""
+    """Start map for ARAP (V,2 mm): arc length along the centreline and arc around it (unwrapped theta x radius)."""
     v, near, theta = cut.v, cut.near, cut.theta
     step = float(np.linalg.norm(np.diff(cut.Pd, axis=0), axis=1).mean()) if len(cut.Pd) > 1 else 1.0
     r = np.linalg.norm(v - cut.Pd[near], axis=1)
