@@ -1,7 +1,8 @@
 """The Slicer module's Logic against real MRML nodes (slicer-core wheel), headless.
 
-``Testing/slicer_stubs`` supplies only ScriptedLoadableModule and parameterNodeWrapper, which the wheel
-lacks; scene, nodes, storage, volume rendering and displayable managers are the real ones.
+The module is loaded over Slicer's real ScriptedLoadableModule and parameterNodeWrapper through
+``Testing/slicer_harness`` (skips with the reason when ``../shared/slicer_python`` is absent); scene, nodes,
+storage, volume rendering and displayable managers are the real ones. Input: the module's sample phantom.
 """
 import os
 import sys
@@ -11,62 +12,35 @@ import pytest
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-sys.path.insert(0, os.path.join(HERE, "slicer_stubs"))
-sys.path.insert(0, os.path.join(ROOT, "StomachUnfold"))
-os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+if HERE not in sys.path:
+    sys.path.insert(0, HERE)
+import slicer_harness
 
-slicer = pytest.importorskip("slicer")
-import vtk  # noqa: E402
+_reason = slicer_harness.skipReason()
+if _reason:
+    pytest.skip(_reason, allow_module_level=True)
+slicer_harness.install()
+import slicer
+import vtk
+from slicer_harness import app as happ
 
-from StomachUnfoldLib.phantom import make_phantom  # noqa: E402
-
-NOTES = os.path.join(ROOT, "..", "shared", "notes", "slicer_core_headless")
-
-
-def make_scene():
-    """A scene wired like Slicer's application: colours, markups, volumes and volume-rendering logics."""
-    scene = slicer.vtkMRMLScene()
-    slicer.mrmlScene = scene
-    app = slicer.vtkSlicerApplicationLogic()
-    app.SetMRMLScene(scene)
-    app.GetColorLogic().SetMRMLScene(scene)
-    app.GetColorLogic().AddDefaultColorNodes()
-    app.SetSliceLogics(vtk.vtkCollection())
-    app.SetViewLogics(vtk.vtkCollection())
-    logics = {}
-    for name, logic in (("Colors", slicer.vtkMRMLColorLogic()), ("Markups", slicer.vtkSlicerMarkupsLogic()),
-                        ("Volumes", slicer.vtkSlicerVolumesLogic()),
-                        ("VolumeRendering", slicer.vtkSlicerVolumeRenderingLogic())):
-        logic.SetMRMLScene(scene)
-        logic.SetMRMLApplicationLogic(app)
-        app.SetModuleLogic(name, logic)
-        logics[name] = logic
-    return scene, app, logics
-
-
-@pytest.fixture
-def ctx():
-    scene, app, logics = make_scene()
-    import StomachUnfold as mod
-
-    logic = mod.StomachUnfoldLogic()
-    logic.volumeRenderingLogic = logics["VolumeRendering"]
-    yield scene, app, logics, logic, mod
-    scene.Clear(True)
+RUN = dict(gridSize=3, wallThicknessMm=4.0)
 
 
 @pytest.fixture(scope="module")
-def phantom():
-    return make_phantom("j", "tiny")
+def env():
+    """One scene with the module loaded, the sample phantom, and one unfold shared by the tests."""
+    scene, app, logics = happ.newScene()
+    module = happ.ModulePanel(os.path.join(ROOT, "StomachUnfold"), "StomachUnfold")
+    import SampleData
 
-
-def _inputs(scene, logic, phantom, transform=None):
-    ct, truth = phantom
-    vol = logic.volumeNodeFromVolume(ct, "CT")
-    pts = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "points")
-    pts.AddControlPoint(vtk.vtkVector3d(*truth["cardia_ras"]), "cardia")
-    pts.AddControlPoint(vtk.vtkVector3d(*truth["pylorus_ras"]), "pylorus")
-    return vol, pts
+    vol, pts = SampleData.downloadSamples("StomachPhantom")
+    logic = module.pythonModule.StomachUnfoldLogic()
+    logic.volumeRenderingLogic = logics["VolumeRendering"]
+    before = slicer.util.arrayFromVolume(vol).copy()
+    out = logic.unfold(vol, *logic.pointsFromMarkups(pts), **RUN)
+    return dict(scene=scene, app=app, logics=logics, mod=module.pythonModule, logic=logic, vol=vol, pts=pts,
+                out=out, before=before)
 
 
 def _scene_state(scene):
@@ -74,45 +48,45 @@ def _scene_state(scene):
                   (scene.GetNthNode(i) for i in range(scene.GetNumberOfNodes())))
 
 
-def test_node_geometry_round_trip(ctx, phantom):
-    scene, app, logics, logic, mod = ctx
-    ct, truth = phantom
-    vol = logic.volumeNodeFromVolume(ct, "CT")
+def test_node_geometry_round_trip(env):
+    logic, vol = env["logic"], env["vol"]
+    ct = logic.volumeFromNode(vol)
+    node = logic.volumeNodeFromVolume(ct, "CT copy")
     m = vtk.vtkMatrix4x4()
-    vol.GetIJKToRASMatrix(m)
-    ras = np.array([[m.GetElement(r, c) for c in range(4)] for r in range(4)])
-    assert np.allclose(ras, ct.index_to_ras_matrix)
-    back = logic.volumeFromNode(vol)
+    node.GetIJKToRASMatrix(m)
+    assert np.allclose([[m.GetElement(r, c) for c in range(4)] for r in range(4)], ct.index_to_ras_matrix)
+    back = logic.volumeFromNode(node)
     assert np.array_equal(back.array, ct.array)
     assert np.allclose(back.origin, ct.origin) and np.allclose(back.direction, ct.direction)
     assert np.allclose(back.spacing, ct.spacing)
+    env["scene"].RemoveNode(node)
 
 
-def test_points_in_world_coordinates_under_a_transform(ctx, phantom):
-    scene, app, logics, logic, mod = ctx
-    vol, pts = _inputs(scene, logic, phantom)
+def test_points_in_world_coordinates_under_a_transform(env):
+    scene, logic, pts = env["scene"], env["logic"], env["pts"]
+    cardia0, _ = logic.pointsFromMarkups(pts)
     t = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode")
     m = vtk.vtkMatrix4x4()
     m.SetElement(0, 3, 10.0)
     t.SetMatrixTransformToParent(m)
     pts.SetAndObserveTransformNodeID(t.GetID())
-    cardia, pylorus = logic.pointsFromMarkups(pts)
-    assert np.allclose(cardia, np.array(phantom[1]["cardia_ras"]) + [10, 0, 0])
-    pts.SetNthControlPointLabel(1, "antrum")
-    with pytest.raises(ValueError, match="pylorus"):
-        logic.pointsFromMarkups(pts)
+    try:
+        cardia, pylorus = logic.pointsFromMarkups(pts)
+        assert np.allclose(cardia, cardia0 + [10, 0, 0])
+        pts.SetNthControlPointLabel(1, "antrum")
+        with pytest.raises(ValueError, match="pylorus"):
+            logic.pointsFromMarkups(pts)
+    finally:
+        pts.SetNthControlPointLabel(1, "pylorus")
+        pts.SetAndObserveTransformNodeID(None)
+        scene.RemoveNode(t)
 
 
-def test_unfold_makes_nodes_and_leaves_inputs_alone(ctx, phantom):
-    scene, app, logics, logic, mod = ctx
-    vol, pts = _inputs(scene, logic, phantom)
-    before = slicer.util.arrayFromVolume(vol).copy()
-    cardia, pylorus = logic.pointsFromMarkups(pts)
-    out = logic.unfold(vol, cardia, pylorus, gridSize=3, wallThicknessMm=4.0)
-    assert np.array_equal(slicer.util.arrayFromVolume(vol), before)
+def test_unfold_makes_nodes_and_leaves_inputs_alone(env):
+    logic, vol, out, logics = env["logic"], env["vol"], env["out"], env["logics"]
+    assert np.array_equal(slicer.util.arrayFromVolume(vol), env["before"])
     v = out["volume"]
-    assert v.GetName().startswith("CT_unfolded") and v.GetImageData() is not None
-    # geometry: IJK-to-RAS of the output is the library's unfolded volume geometry in RAS
+    assert v.GetName().startswith("StomachPhantom_unfolded") and v.GetImageData() is not None
     res = logic.results[v.GetID()]
     m = vtk.vtkMatrix4x4()
     v.GetIJKToRASMatrix(m)
@@ -120,80 +94,85 @@ def test_unfold_makes_nodes_and_leaves_inputs_alone(ctx, phantom):
     assert np.array_equal(slicer.util.arrayFromVolume(v), res.unfolded.array)
     dn = logics["VolumeRendering"].GetFirstVolumeRenderingDisplayNode(v)
     assert dn is not None and dn.GetVisibility()
-    assert dn.GetVolumePropertyNode().GetVolumeProperty().GetScalarOpacity().GetValue(-1000) == 0.0
+    assert dn.GetVolumePropertyNode().GetScalarOpacity().GetValue(-1000) == 0.0
     assert out["incision"].IsA("vtkMRMLMarkupsCurveNode") and out["incision"].GetNumberOfControlPoints() > 10
     assert out["centerline"].GetNumberOfControlPoints() > 10
     assert out["model"].GetPolyData().GetNumberOfPoints() > 100
     assert out["report"]["quality"]["grade"] in ("excellent", "good")
-    # unique names on a second run
-    out2 = logic.unfold(vol, cardia, pylorus, gridSize=3, wallThicknessMm=4.0)
-    assert out2["volume"].GetName() != v.GetName()
+    import json
+
+    assert json.loads(v.GetAttribute("StomachUnfold.report"))["quality"]["grade"] == out["report"]["quality"]["grade"]
 
 
-def test_correspondence_both_ways_and_slice_jump(ctx, phantom):
-    scene, app, logics, logic, mod = ctx
-    vol, pts = _inputs(scene, logic, phantom)
-    out = logic.unfold(vol, *logic.pointsFromMarkups(pts), gridSize=3, wallThicknessMm=4.0)
-    marker = np.array(phantom[1]["markers"][3]["ras"])
-    there = logic.mapToUnfolded(out["volume"], marker)
+def test_correspondence_both_ways_and_slice_jump(env):
+    scene, logic, out = env["scene"], env["logic"], env["out"]
+    from StomachUnfoldLib.geometry import lps_to_ras
+
+    mesh = logic.results[out["volume"].GetID()].mesh
+    mucosa = lps_to_ras(mesh.rest_lps[mesh.surface[len(mesh.surface) // 3][0]])
+    there = logic.mapToUnfolded(out["volume"], mucosa)
     back = logic.mapToOriginal(out["volume"], there)
-    assert np.allclose(back, marker, atol=1e-3)
+    assert np.allclose(back, mucosa, atol=0.5)
     assert logic.mapToUnfolded(out["volume"], [999.0, 999.0, 999.0]) is None
     red = scene.AddNewNodeByClass("vtkMRMLSliceNode")
-    red.SetLayoutName("Red")
+    red.SetLayoutName("RedTest")
     red.SetOrientationToAxial()
     logic.jumpSlicesTo(back)
-    m = red.GetSliceToRAS()
-    assert abs(m.GetElement(2, 3) - back[2]) < 1e-3
+    assert abs(red.GetSliceToRAS().GetElement(2, 3) - back[2]) < 1e-3
+    scene.RemoveNode(red)
 
 
-def test_error_and_cancel_leave_the_scene_as_it_was(ctx, phantom):
-    scene, app, logics, logic, mod = ctx
-    vol, pts = _inputs(scene, logic, phantom)
+def test_error_and_cancel_leave_the_scene_as_it_was(env):
+    scene, logic, vol, pts = env["scene"], env["logic"], env["vol"], env["pts"]
     state = _scene_state(scene)
     cardia, pylorus = logic.pointsFromMarkups(pts)
     with pytest.raises(ValueError, match="outside the volume"):
         logic.unfold(vol, cardia + [0, 0, 900.0], pylorus, gridSize=3)
     assert _scene_state(scene) == state
     from StomachUnfoldLib.errors import Cancelled
+
     with pytest.raises(Cancelled):
-        logic.unfold(vol, cardia, pylorus, gridSize=3, progress=lambda s, f: s != "unfolded volume")
+        logic.unfold(vol, cardia, pylorus, gridSize=3, progress=lambda s, f: f < 0.1)
     assert _scene_state(scene) == state
+
+    class DiskFull(RuntimeError):
+        pass
+
     # a failure while the output nodes are being made removes the ones already made
+    result = next(iter(logic.results.values()))
     orig = logic._curveNode
-    logic._curveNode = lambda *a, **k: (_ for _ in ()).throw(RuntimeError("disk full"))
-    with pytest.raises(RuntimeError):
-        logic.unfold(vol, cardia, pylorus, gridSize=3, wallThicknessMm=4.0)
-    logic._curveNode = orig
+    logic._curveNode = lambda *a, **k: (_ for _ in ()).throw(DiskFull("disk full"))
+    try:
+        with pytest.raises(DiskFull):
+            logic._makeOutputNodes(result, "again")
+    finally:
+        logic._curveNode = orig
     assert _scene_state(scene) == state
 
 
-def test_parameter_node_run(ctx, phantom):
-    scene, app, logics, logic, mod = ctx
-    vol, pts = _inputs(scene, logic, phantom)
+def test_parameter_node_run(env):
+    logic, vol, pts = env["logic"], env["vol"], env["pts"]
     p = logic.getParameterNode()
     assert p.gridSize == 0  # automatic: cells of 5.6 mm, d = 3 on the 1.8 mm phantom
-    p.inputVolume, p.pointsNode, p.wallThicknessMm = vol, pts, 4.0
-    out = logic.unfoldFromParameterNode(p)
-    assert p.outputVolume is out["volume"]
-    assert out["report"]["model"]["grid_size_d"] == 3 and out["report"]["parameters"]["grid_size"] is None
+    params = logic.unfoldParameters(**{n: getattr(p, n) for n in env["mod"].PARAMETER_MAP})
+    assert params.grid_size is None and params.method == p.method
     with pytest.raises(ValueError):
         logic.unfold(vol, [0, 0, 0], [1, 1, 1], notAParameter=3)
+    with pytest.raises(ValueError, match="select an input CT"):
+        logic.unfoldFromParameterNode(p)
 
 
-def test_label_map_mask_from_a_node(ctx, phantom):
-    scene, app, logics, logic, mod = ctx
-    ct, truth = phantom
-    vol, pts = _inputs(scene, logic, phantom)
+def test_label_map_mask_from_a_node(env):
+    scene, logic, vol = env["scene"], env["logic"], env["vol"]
+    ct = logic.volumeFromNode(vol)
     lab = logic.volumeNodeFromVolume(ct.with_array((ct.array < -500).astype(np.uint8)), "label")
-    mask = logic.maskFromNode(lab, logic.volumeFromNode(vol))
+    mask = logic.maskFromNode(lab, ct)
     assert mask.shape == ct.array.shape and mask.sum() == (ct.array < -500).sum()
+    scene.RemoveNode(lab)
 
 
-def test_volume_rendered_view_png_is_not_blank(ctx, phantom, tmp_path):
-    scene, app, logics, logic, mod = ctx
-    vol, pts = _inputs(scene, logic, phantom)
-    out = logic.unfold(vol, *logic.pointsFromMarkups(pts), gridSize=3, wallThicknessMm=4.0)
+def test_volume_rendered_view_png_is_not_blank(env, tmp_path):
+    scene, app, logics, out = env["scene"], env["app"], env["logics"], env["out"]
     png = render_view_png(scene, app, logics["VolumeRendering"], out["volume"], out["camera"],
                           str(tmp_path / "vr.png"), size=(400, 300))
     r = vtk.vtkPNGReader()
@@ -262,13 +241,3 @@ def render_view_png(scene, app, vr_logic, volume_node, camera, png, size=(600, 4
     group.SetMRMLDisplayableNode(None)
     rw.Finalize()
     return png
-
-
-def test_module_self_test_runs_headless(ctx):
-    """The module's own ScriptedLoadableModuleTest (what Slicer --testing runs) passes on real MRML nodes."""
-    scene, app, logics, logic, mod = ctx
-    t = mod.StomachUnfoldTest()
-    t.setUp = lambda: None  # the harness scene is already fresh; slicer.mrmlScene.Clear() also works
-    t.runTest()
-    names = [scene.GetNthNode(i).GetName() for i in range(scene.GetNumberOfNodes())]
-    assert any(n.startswith("phantom_unfolded") for n in names)

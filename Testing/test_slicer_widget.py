@@ -14,16 +14,16 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 if HERE not in sys.path:
     sys.path.insert(0, HERE)
-import slicer_harness  # noqa: E402
+import slicer_harness
 
 _reason = slicer_harness.skipReason()
 if _reason:
     pytest.skip(_reason, allow_module_level=True)
 H = slicer_harness.install()
-from slicer_harness import app as happ  # noqa: E402
+from slicer_harness import app as happ
 
 qt, slicer = H.qt, H.slicer
-import vtk  # noqa: E402
+import vtk
 
 SAMPLE_DIR = os.path.join(ROOT, "StomachUnfold", "Resources", "SampleData")
 RUN = dict(gridSize=3, wallThicknessMm=4.0)
