@@ -147,6 +147,74 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
                 "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum())}
 
 
+def untangle(uv: np.ndarray, f: np.ndarray, rounds: int = 20) -> tuple[np.ndarray, int, int]:
+    """Fix flipped triangles of a flat map (V,2 mm): move their interior vertices to their neighbours' mean, repeat.
+
+    Returns (uv, flipped before, flipped after); boundary vertices stay.
+    """
+    from scipy.sparse import coo_matrix
+
+    uv = uv.copy()
+    e = _edges(f)
+    nv = len(uv)
+    A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv)).tocsr()
+    deg = np.maximum(np.asarray(A.sum(1)).ravel(), 1)
+    ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    ue, cnt = np.unique(ee, axis=0, return_counts=True)
+    on_b = np.zeros(nv, bool)
+    on_b[ue[cnt == 1].ravel()] = True
+
+    def flipped():
+        sa = signed_area_2d(uv, f)
+        major = np.sign(np.sum(np.sign(sa))) or 1.0
+        return np.sign(sa) != major
+
+    bad = flipped()
+    before = int(bad.sum())
+    for _ in range(rounds):
+        if not bad.any():
+            break
+        # the flipped triangles' vertices and their one-ring grow each round until the fold is gone
+        mv = np.zeros(nv, bool)
+        mv[f[bad].ravel()] = True
+        mv = (A @ mv.astype(float) > 0) | mv
+        if _ < rounds // 2:
+            mv &= ~on_b                           # boundary vertices move too once the interior alone did not do
+        for _ in range(5):
+            avg = (A @ uv) / deg[:, None]
+            uv[mv] = avg[mv]
+        bad = flipped()
+    return uv, before, int(bad.sum())
+
+
+def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1.45, rounds: int = 4
+                  ) -> tuple[np.ndarray, int]:
+    """Drop boundary triangles of a flat map that are flipped or have an edge stretched over ``limit`` (3D mm vs uv mm).
+
+    A free boundary next to strongly curved wall (a cap's rim) can fold or stretch by a few triangles, and a fold of
+    the smoothed surface itself leaves a flipped sliver inside; they are peeled off (the mucosa under them maps to
+    their neighbours). Returns (kept triangles, number dropped).
+    """
+    f0 = len(f)
+    for _ in range(rounds):
+        ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        ue, inv, cnt = np.unique(ee, axis=0, return_inverse=True, return_counts=True)
+        on_b = np.zeros(len(v), bool)
+        on_b[ue[cnt == 1].ravel()] = True
+        sa = signed_area_2d(uv, f)
+        major = np.sign(np.sum(np.sign(sa))) or 1.0
+        l0 = np.linalg.norm(v[ue[:, 0]] - v[ue[:, 1]], axis=1)
+        l1 = np.linalg.norm(uv[ue[:, 0]] - uv[ue[:, 1]], axis=1)
+        long_e = (l1 > limit * l0)[inv.ravel()].reshape(3, -1).any(0)
+        flip = np.sign(sa) != major
+        # on the boundary: flipped or stretched; inside: only flipped slivers (under a tenth of the median area)
+        bad = ((flip | long_e) & on_b[f].any(1)) | (flip & (np.abs(sa) < 0.1 * np.median(np.abs(sa))))
+        if not bad.any():
+            break
+        f = f[~bad]
+    return f, f0 - len(f)
+
+
 def stretch_stats(v: np.ndarray, f: np.ndarray, uv: np.ndarray) -> dict:
     """Per-triangle singular values of the flat map's Jacobian: max / 95th percentile of the stretch (s1) and of 1/s2."""
     x, area = triangle_frames(v, f)
@@ -451,10 +519,16 @@ class IsometricFlattening(Method):
             uv0 = _start_map(cut)
             t_init = time.perf_counter() - t0
             uv, info = arap(cut.v, cut.f, uv0, progress=report)
+            uv, _, info["flipped_after_untangle"] = untangle(uv, cut.f)
+            f_keep, info["peeled_triangles"] = peel_boundary(cut.v, cut.f, uv)
+            if info["peeled_triangles"]:
+                cut, uv = _with_faces(cut, f_keep, uv)
             uv, flipped_frac = orient_rigid(uv, cut, prep.pixel_mm)
             st = stretch_stats(cut.v, cut.f, uv)
-        if info["flipped_triangles"]:
-            warnings.append(f"the ARAP flat map has {info['flipped_triangles']} flipped triangles")
+        sa = signed_area_2d(uv, cut.f)
+        info["flipped_final"] = int(np.sum(np.sign(sa) != (np.sign(np.sum(np.sign(sa))) or 1.0)))
+        if info["flipped_final"]:
+            warnings.append(f"the flat map has {info['flipped_final']} flipped triangles")
         with timed_stage(progress, "volume", seconds, 0.6, 1.0) as report:
             vol, fwd, inv, mesh, vinfo = sample_flat_map(prep, cut, uv, report)
         cut_len = float(np.linalg.norm(cut.v[cut.boundary_edges[:, 0]] - cut.v[cut.boundary_edges[:, 1]],
@@ -462,6 +536,26 @@ class IsometricFlattening(Method):
         section = {**cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
                    "flipped_triangle_fraction": flipped_frac, "start_map_seconds": t_init}
         return Unfolding(vol, MapCorrespondence(fwd, inv), mesh, section, warnings, seconds)
+
+
+def _with_faces(cut, f: np.ndarray, uv: np.ndarray):
+    """The cut surface and its flat map (V,2 mm) restricted to triangles f, unused vertices dropped."""
+    from dataclasses import fields, replace
+
+    nv = len(cut.v)
+    used = np.unique(f)
+    remap = np.full(nv, -1, np.int64)
+    remap[used] = np.arange(len(used))
+    f = remap[f]
+    ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    ue, cnt = np.unique(ee, axis=0, return_counts=True)
+    per_vertex = {fl.name: getattr(cut, fl.name)[used] for fl in fields(cut)
+                  if fl.name not in ("f", "boundary_edges", "Pd") and isinstance(getattr(cut, fl.name), np.ndarray)
+                  and len(getattr(cut, fl.name)) == nv}
+    if "partner" in per_vertex:
+        p = per_vertex["partner"]
+        per_vertex["partner"] = np.where(p >= 0, remap[np.maximum(p, 0)], -1)
+    return replace(cut, f=f, boundary_edges=ue[cnt == 1], **per_vertex), uv[used]
 
 
 def _start_map(cut) -> np.ndarray:

@@ -1,0 +1,146 @@
+"""The isometric method (ARAP flattening of the cut-open inner wall): pieces on exact meshes, and the whole run on
+the tiny J phantom through ``unfold(..., UnfoldParameters(method="isometric"))``.
+"""
+import numpy as np
+import pytest
+
+from StomachUnfoldEval.phantom import make_phantom
+from StomachUnfoldLib.errors import Cancelled
+from StomachUnfoldLib.methods.isometric import arap, cut_along_path, stretch_stats, untangle
+from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
+from StomachUnfoldLib.quality import mucosa_points
+from StomachUnfoldLib.surface import signed_area_2d
+
+
+def _euler_and_loops(v, f):
+    from StomachUnfoldLib.methods.isometric import _boundary_loops
+
+    e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    return len(np.unique(f)) - len(e) + len(f), len(_boundary_loops(f))
+
+
+def _grid(nu, nv, closed_v=False):
+    """Triangles (counter-clockwise in (u, v)) of an nu x nv vertex grid; v periodic if closed_v."""
+    idx = np.arange(nu * nv).reshape(nu, nv)
+    cols = nv if closed_v else nv - 1
+    f = []
+    for a in range(nu - 1):
+        for b in range(cols):
+            p, q = idx[a, b], idx[a + 1, b]
+            r, s = idx[a + 1, (b + 1) % nv], idx[a, (b + 1) % nv]
+            f += [[p, q, r], [p, r, s]]
+    return np.array(f, np.int64)
+
+
+def _sphere(n_lat=16, n_lon=24, r=20.0):
+    """A closed, consistently oriented UV sphere (V,3 mm), triangles with outward normals."""
+    th = np.linspace(0, np.pi, n_lat + 1)[1:-1]
+    ph = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
+    T, P = np.meshgrid(th, ph, indexing="ij")
+    v = np.stack([r * np.sin(T) * np.cos(P), r * np.sin(T) * np.sin(P), r * np.cos(T)], -1).reshape(-1, 3)
+    f = _grid(len(th), n_lon, closed_v=True)
+    top, bot = len(v), len(v) + 1
+    v = np.vstack([v, [[0, 0, r], [0, 0, -r]]])
+    ring0, ringN = np.arange(n_lon), (len(th) - 1) * n_lon + np.arange(n_lon)
+    f = np.vstack([f, [[top, ring0[(b + 1) % n_lon], ring0[b]] for b in range(n_lon)],
+                   [[bot, ringN[b], ringN[(b + 1) % n_lon]] for b in range(n_lon)]])
+    # outward orientation
+    c = v[f].mean(1)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    flip = np.sum(n * c, 1) < 0
+    f[flip] = f[flip][:, ::-1]
+    return v, f, n_lon
+
+
+def test_cut_closed_surface_gives_disc():
+    v, f, n_lon = _sphere()
+    assert _euler_and_loops(v, f) == (2, 0)
+    path = np.array([len(v) - 2] + [k * n_lon for k in range(15)] + [len(v) - 1])   # pole to pole on a meridian
+    path = path[1:-1]                                                                 # a slit short of the poles
+    v2, f2, src = cut_along_path(v, f, path)
+    assert len(src) == len(path) - 2
+    assert _euler_and_loops(v2, f2) == (1, 1)
+    assert np.all(signed_area_2d(v2[:, :2], f2) * 0 == 0)
+
+
+def test_cut_tube_between_openings_gives_disc():
+    nu, nv = 12, 20
+    a = np.linspace(0, 2 * np.pi, nv, endpoint=False)
+    z = np.linspace(0, 40, nu)
+    v = np.stack([10 * np.cos(a)[None].repeat(nu, 0), 10 * np.sin(a)[None].repeat(nu, 0),
+                  z[:, None].repeat(nv, 1)], -1).reshape(-1, 3)
+    f = _grid(nu, nv, closed_v=True)
+    assert _euler_and_loops(v, f) == (0, 2)
+    path = np.arange(nu) * nv                                # along a generator from one opening to the other
+    v2, f2, src = cut_along_path(v, f, path, ends_on_boundary=True)
+    assert len(src) == nu
+    assert _euler_and_loops(v2, f2) == (1, 1)
+
+
+def test_arap_of_developable_patch_is_isometric():
+    nu, nv, R = 15, 20, 15.0
+    a = np.linspace(0, 1.5 * np.pi, nv)
+    z = np.linspace(0, 30, nu)
+    A, Z = np.meshgrid(a, z)
+    v = np.stack([R * np.cos(A), R * np.sin(A), Z], -1).reshape(-1, 3)
+    f = _grid(nu, nv)
+    rng = np.random.default_rng(0)
+    uv0 = np.stack([Z.ravel() * 1.3, (A * R).ravel() * 0.7], 1) + rng.normal(0, 0.05, (len(v), 2))
+    uv, info = arap(v, f, uv0, max_iter=200, tol=1e-12)
+    st = stretch_stats(v, f, uv)
+    assert st["stretch_max"] < 1 + 1e-3 and st["shrink_max"] < 1 + 1e-3
+    assert info["flipped_triangles"] == 0
+
+
+def test_untangle_fixes_a_fold():
+    nu = nv = 8
+    U, V = np.meshgrid(np.arange(nu, dtype=float), np.arange(nv, dtype=float), indexing="ij")
+    uv = np.stack([U.ravel(), V.ravel()], 1)
+    f = _grid(nu, nv)
+    uv[3 * nv + 3] += [1.6, 1.4]                             # push an interior vertex over its neighbours
+    fixed, before, after = untangle(uv, f)
+    assert before > 0 and after == 0
+
+
+@pytest.fixture(scope="module")
+def tiny_run():
+    ct, truth = make_phantom("j", "tiny")
+    res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                 UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
+    return ct, truth, res
+
+
+def test_tiny_phantom_grade_and_distortion(tiny_run):
+    _, _, res = tiny_run
+    q, m = res.report["quality"], res.report["method"]
+    assert q["grade"] in ("excellent", "good")
+    assert q["visible_fraction"] >= 0.97
+    assert q["inverted_fraction"] == 0.0
+    assert m["edge_ratio_max"] < 1.5 and q["broken_springs_fraction"] == 0.0
+    assert m["euler_characteristic"] == 1 and m["boundary_loops"] == 1
+    assert res.report["unfolded_volume"]["direction"] == np.eye(3).tolist()
+
+
+def test_tiny_phantom_markers_in_arc_order_and_round_trip(tiny_run):
+    _, truth, res = tiny_run
+    mk = {m["id"]: m for m in truth["markers"]}
+    mapped = res.map_landmarks({k: m["lps"] for k, m in mk.items()})
+    arc = np.array([mk[k]["arclength_mm"] for k in mapped])
+    i = np.array([mapped[k][0] for k in mapped])
+    assert np.all(np.isfinite(i))
+    # cardia -> pylorus along +i: the view's i grows with the markers' arc length
+    assert np.corrcoef(arc, i)[0, 1] > 0.9
+    pts = mucosa_points(res.lumen_crop, res.centerline_lps, max_points=500)
+    back = res.correspondence.to_original(res.correspondence.to_unfolded(pts))
+    err = np.linalg.norm(back - pts, axis=1)
+    assert np.nanmedian(err) < 1.5 and np.mean(np.isfinite(err)) > 0.97
+
+
+def test_cancel_raises():
+    ct, truth = make_phantom("j", "tiny")
+
+    def cb(stage, fraction):
+        return not (stage == "flat map" and fraction > 0.0)
+    with pytest.raises(Cancelled):
+        unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+               UnfoldParameters(method="isometric", wall_thickness_mm=4.0), progress=cb)
