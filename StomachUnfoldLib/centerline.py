@@ -283,6 +283,48 @@ def minimal_path(cost: np.ndarray, start, end, sampling=(1.0, 1.0, 1.0)):
 
 
 # ---------------------------------------------------------------------------------------------- main
+def _snapped_ends(lumen, volume, cardia_lps, pylorus_lps, max_snap_mm, step_mm) -> list:
+    """The cardia and pylorus (LPS mm) snapped into the lumen; PointError or AnatomyError saying why not."""
+    from .preprocessing import ras_text
+
+    ends_lps = []
+    for name, p in (("cardia", cardia_lps), ("pylorus", pylorus_lps)):
+        p = np.asarray(p, float).reshape(3)
+        s = _snap_any(lumen, volume, p, max_snap_mm) if lumen.any() else None
+        if s is None:
+            if not lumen.any():
+                raise AnatomyError("the stomach lumen is empty; check the points, the threshold or the mask")
+            raise PointError(f"the {name} point (RAS {ras_text(p)} mm) is more than {max_snap_mm:g} mm from the "
+                             "stomach lumen; place it in the lumen or on the wall next to it")
+        ends_lps.append(s)
+    if np.linalg.norm(ends_lps[0] - ends_lps[1]) < 2.0 * step_mm:
+        raise AnatomyError("the cardia and pylorus points snap to almost the same place in the lumen "
+                           f"({np.linalg.norm(ends_lps[0] - ends_lps[1]):.1f} mm apart); place them at the two "
+                           "ends of the stomach")
+    return ends_lps
+
+
+def _coarse_path(sub, f, csp, c_origin, direction, ends_lps, max_snap_mm, progress):
+    """Minimal-cost path (coarse (k, j, i) indices, cardia first) through the block-reduced lumen, its grid and DT."""
+    path, cvol, dt = None, None, None
+    for majority in (True, False):
+        coarse = _block_reduce(sub, f[::-1], majority)
+        cvol = Volume(np.zeros(coarse.shape, np.uint8), csp, c_origin, direction)
+        cends = [_snap_any(coarse, cvol, e, max_snap_mm + 2.0 * float(csp.max())) for e in ends_lps]
+        if any(c is None for c in cends):
+            continue
+        cends = [tuple(np.rint(cvol.lps_to_index(c[None])[0]).astype(int)[::-1]) for c in cends]  # (k, j, i)
+        dt = ndimage.distance_transform_edt(coarse, sampling=csp[::-1])
+        if progress is not None:
+            progress(0.2)
+        cost = np.where(coarse, 1.0 / (dt / max(float(dt.max()), 1e-6) + 0.05) ** 2, np.inf)
+        found, _ = minimal_path(cost, cends[0], cends[1], sampling=tuple(csp[::-1]))
+        if found is not None:
+            path = found.astype(float)  # (k, j, i), cardia first
+            break
+    return path, cvol, dt
+
+
 def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lps, step_mm: float = 2.0,
                        max_snap_mm: float = 20.0, coarse_mm: float = 2.0, progress=None) -> Centerline:
     """Central curve (LPS mm) through ``lumen`` from the cardia to the pylorus, with the radius (mm) along it.
@@ -327,7 +369,7 @@ def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lp
     every half voxel on the full-resolution lumen: the distance to the nearest non-lumen voxel centre
     they meet. This avoids a distance transform of the whole full-resolution lumen (seconds on a CT).
     """
-    from .preprocessing import ras_text, bounding_box
+    from .preprocessing import bounding_box
 
     if not step_mm > 0:
         raise InputError(f"the centreline step must be positive, got {step_mm} mm")
@@ -335,20 +377,7 @@ def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lp
     if lumen.shape != volume.array.shape:
         raise InputError(f"the lumen has shape {lumen.shape} but the volume {volume.array.shape}; pass the lumen "
                          "on the volume's grid")
-    ends_lps = []
-    for name, p in (("cardia", cardia_lps), ("pylorus", pylorus_lps)):
-        p = np.asarray(p, float).reshape(3)
-        s = _snap_any(lumen, volume, p, max_snap_mm) if lumen.any() else None
-        if s is None:
-            if not lumen.any():
-                raise AnatomyError("the stomach lumen is empty; check the points, the threshold or the mask")
-            raise PointError(f"the {name} point (RAS {ras_text(p)} mm) is more than {max_snap_mm:g} mm from the "
-                             "stomach lumen; place it in the lumen or on the wall next to it")
-        ends_lps.append(s)
-    if np.linalg.norm(ends_lps[0] - ends_lps[1]) < 2.0 * step_mm:
-        raise AnatomyError("the cardia and pylorus points snap to almost the same place in the lumen "
-                           f"({np.linalg.norm(ends_lps[0] - ends_lps[1]):.1f} mm apart); place them at the two "
-                           "ends of the stomach")
+    ends_lps = _snapped_ends(lumen, volume, cardia_lps, pylorus_lps, max_snap_mm, step_mm)
     if progress is not None:
         progress(0.05)
 
@@ -359,22 +388,7 @@ def compute_centerline(lumen: np.ndarray, volume: Volume, cardia_lps, pylorus_lp
     f = np.maximum(1, np.floor(coarse_mm / volume.spacing + 0.5).astype(int))  # (i, j, k)
     csp = volume.spacing * f
     c_origin = crop_origin + volume.direction @ (volume.spacing * (f - 1) / 2.0)
-    path, cvol, dt = None, None, None
-    for majority in (True, False):
-        coarse = _block_reduce(sub, f[::-1], majority)
-        cvol = Volume(np.zeros(coarse.shape, np.uint8), csp, c_origin, volume.direction)
-        cends = [_snap_any(coarse, cvol, e, max_snap_mm + 2.0 * float(csp.max())) for e in ends_lps]
-        if any(c is None for c in cends):
-            continue
-        cends = [tuple(np.rint(cvol.lps_to_index(c[None])[0]).astype(int)[::-1]) for c in cends]  # (k, j, i)
-        dt = ndimage.distance_transform_edt(coarse, sampling=csp[::-1])
-        if progress is not None:
-            progress(0.2)
-        cost = np.where(coarse, 1.0 / (dt / max(float(dt.max()), 1e-6) + 0.05) ** 2, np.inf)
-        found, _ = minimal_path(cost, cends[0], cends[1], sampling=tuple(csp[::-1]))
-        if found is not None:
-            path = found.astype(float)  # (k, j, i), cardia first
-            break
+    path, cvol, dt = _coarse_path(sub, f, csp, c_origin, volume.direction, ends_lps, max_snap_mm, progress)
     if path is None:
         raise AnatomyError("the cardia and pylorus points are not connected through the stomach lumen (separate "
                            "air pockets?); place both points in one lumen, or pass a stomach label with --mask")

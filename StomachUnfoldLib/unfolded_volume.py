@@ -376,6 +376,36 @@ def _suggest_spacing(grid: UnfoldedGrid, max_voxels: int) -> float:
     return float(round(sp, 2))
 
 
+def _output_to_ct_maps(ct: Volume, grid, rest, deformed, tets):
+    """Per tetrahedron, the exact affine map output index -> CT continuous index, as 3x4 columns of arrays."""
+    q = grid.lps_to_index(deformed)
+    p = q[tets]
+    E = tet_edges(p)
+    det_q = np.linalg.det(E)
+    ok = ~degenerate_tets(E, det_q)
+    inv = np.zeros_like(E)
+    inv[ok] = np.linalg.inv(E[ok])
+    B = barycentric_planes(p, inv)  # barycentric planes in output index space
+    R = ct.lps_to_index(rest)[tets].transpose(0, 2, 1)  # (T,3,4): columns = rest corners in CT index
+    M = R @ B  # (T,3,4)
+    cols = [[np.ascontiguousarray(M[:, r, c]) for c in range(4)] for r in range(3)]
+    return cols
+
+
+def _tet_flags(rest, deformed, tets):
+    """(inverted, degenerate) bool per tetrahedron: turned inside out, or flat, after the deformation."""
+    rest_vol = tet_volumes(rest, tets)
+    def_vol = tet_volumes(deformed, tets)
+    E_d = tet_edges(deformed[tets])
+    degenerate = degenerate_tets(E_d, np.linalg.det(E_d))
+    del E_d
+    E_r = tet_edges(rest[tets])
+    rest_ok = ~degenerate_tets(E_r, np.linalg.det(E_r))
+    del E_r
+    inverted = rest_ok & ~degenerate & (np.sign(rest_vol) != np.sign(def_vol))
+    return inverted, degenerate
+
+
 def build_unfolded_volume(ct: Volume, rest: np.ndarray, deformed: np.ndarray, hexes: np.ndarray,
                           grid: UnfoldedGrid, background: float = -1024.0, clear_mask: np.ndarray | None = None,
                           progress=None, max_voxels: int = 400_000_000, dtype=np.int16,
@@ -422,19 +452,7 @@ def build_unfolded_volume(ct: Volume, rest: np.ndarray, deformed: np.ndarray, he
     label_progress = None if progress is None else (lambda f: progress(0.8 * f))
     labels, overlap = label_map(grid, deformed, tets, progress=label_progress)
 
-    # per tetrahedron: output index -> CT continuous index, exact affine (rest corners in CT index @ planes)
-    q = grid.lps_to_index(deformed)
-    p = q[tets]
-    E = tet_edges(p)
-    det_q = np.linalg.det(E)
-    ok = ~degenerate_tets(E, det_q)
-    inv = np.zeros_like(E)
-    inv[ok] = np.linalg.inv(E[ok])
-    B = barycentric_planes(p, inv)  # barycentric planes in output index space
-    R = ct.lps_to_index(rest)[tets].transpose(0, 2, 1)  # (T,3,4): columns = rest corners in CT index
-    M = R @ B  # (T,3,4)
-    cols = [[np.ascontiguousarray(M[:, r, c]) for c in range(4)] for r in range(3)]
-    del p, E, inv, B, R, M
+    cols = _output_to_ct_maps(ct, grid, rest, deformed, tets)
 
     bg = float(background)
     if dtype.kind in "iu":
@@ -486,15 +504,7 @@ def build_unfolded_volume(ct: Volume, rest: np.ndarray, deformed: np.ndarray, he
     if progress is not None:
         progress(1.0)
 
-    rest_vol = tet_volumes(rest, tets)
-    def_vol = tet_volumes(deformed, tets)
-    E_d = tet_edges(deformed[tets])
-    degenerate = degenerate_tets(E_d, np.linalg.det(E_d))
-    del E_d
-    E_r = tet_edges(rest[tets])
-    rest_ok = ~degenerate_tets(E_r, np.linalg.det(E_r))
-    del E_r
-    inverted = rest_ok & ~degenerate & (np.sign(rest_vol) != np.sign(def_vol))
+    inverted, degenerate = _tet_flags(rest, deformed, tets)
     info = {"filled_voxels": int(filled), "overlap_voxels": int(overlap),
             "inverted_tets": int(np.count_nonzero(inverted)), "degenerate_tets": int(np.count_nonzero(degenerate)),
             "outside_ct_voxels": int(outside_ct), "tets": int(len(tets)), "seconds": time.perf_counter() - t0}

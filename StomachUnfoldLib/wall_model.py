@@ -103,6 +103,73 @@ def _block_any(mask: np.ndarray, steps, shape_cells) -> np.ndarray:
     return pad.reshape(nk, sk, nj, sj, ni, si).any(axis=(1, 3, 5))
 
 
+def _remove_openings(keep, cell_centres_lps, openings, centerline_lps) -> int:
+    """Clear the kept cells beyond the cardia and pylorus planes (in place); returns how many were removed."""
+    if not openings:
+        return 0
+    idx = np.argwhere(keep)
+    centres = cell_centres_lps(idx)
+    beyond = np.zeros(len(idx), bool)
+    nearest = None
+    if centerline_lps is not None:
+        from scipy.spatial import cKDTree
+
+        cl = np.asarray(centerline_lps, float)
+        _, nearest = cKDTree(cl).query(centres)
+        ends = {0: 0, 1: len(cl) - 1}
+    for which, (point, normal) in enumerate(openings):
+        normal = np.asarray(normal, float) / np.linalg.norm(normal)
+        out = (centres - np.asarray(point, float)) @ normal > 0
+        if nearest is not None and which in ends:
+            out &= nearest == ends[which]
+        beyond |= out
+    keep[tuple(idx[beyond].T)] = False
+    return int(beyond.sum())
+
+
+def _springs(hexes: np.ndarray, vertices: np.ndarray):
+    """Unique springs (S,2) of the cells' edges, face and body diagonals, their kinds and rest lengths (mm)."""
+    pairs = np.array(_EDGES + _FACE_DIAGONALS + _BODY_DIAGONALS)
+    kinds = np.array([0] * len(_EDGES) + [1] * len(_FACE_DIAGONALS) + [2] * len(_BODY_DIAGONALS))
+    s = hexes[:, pairs]  # (M, 28, 2)
+    s = np.sort(s.reshape(-1, 2), axis=1)
+    kind_all = np.tile(kinds, len(hexes))
+    key = s[:, 0] * len(vertices) + s[:, 1]
+    _, first = np.unique(key, return_index=True)
+    springs = s[first]
+    rest_length = np.linalg.norm(vertices[springs[:, 0]] - vertices[springs[:, 1]], axis=1)
+    return springs, kind_all[first], rest_length
+
+
+def _surface_sets(volume, cells, hexes, n_vertices, keep, incision_cells, lumen_cells, step_arr, ncells):
+    """The paper's vertex sets from the faces of kept cells: inner (S_vi), outer (S_vo), boundary (S_vb), cut normal."""
+    inner = np.zeros(n_vertices, bool)
+    outer = np.zeros(n_vertices, bool)
+    boundary = np.zeros(n_vertices, bool)
+    cut_normal = np.zeros((n_vertices, 3))
+    axes_lps = volume.direction * (volume.spacing * step_arr)[None, :]  # LPS vector of one cell step along i, j, k
+    shape_c = np.array(ncells)
+    for off, local in _FACES:
+        nb = cells + np.array(off[::-1])  # neighbour in (k, j, i)
+        inside = np.all((nb >= 0) & (nb < shape_c), axis=1)
+        nbc = np.clip(nb, 0, shape_c - 1)
+        nb_keep = inside & keep[nbc[:, 0], nbc[:, 1], nbc[:, 2]]
+        nb_cut = inside & incision_cells[nbc[:, 0], nbc[:, 1], nbc[:, 2]] & ~nb_keep
+        nb_lumen = inside & lumen_cells[nbc[:, 0], nbc[:, 1], nbc[:, 2]] & ~nb_keep & ~nb_cut
+        free = ~nb_keep
+        vids = hexes[:, list(local)]
+        inner[vids[nb_lumen].ravel()] = True
+        boundary[vids[nb_cut].ravel()] = True
+        # from the removed cell toward the kept one: which side of the cut this face is on
+        step_lps = -(axes_lps @ np.array(off, float))
+        for c in range(4):
+            np.add.at(cut_normal, vids[nb_cut][:, c], step_lps)
+        outer[vids[free & ~nb_lumen & ~nb_cut].ravel()] = True
+    inner |= boundary
+    outer |= boundary
+    return inner, outer, boundary, cut_normal
+
+
 def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int = 8,
                      cut_points_lps: np.ndarray | None = None,
                      openings: list[tuple[np.ndarray, np.ndarray]] | None = None,
@@ -153,26 +220,7 @@ def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int
     keep = occupied & ~incision_cells
 
     # --- openings at the cardia and pylorus ends
-    removed_open = 0
-    if openings:
-        idx = np.argwhere(keep)
-        centres = cell_centres_lps(idx)
-        beyond = np.zeros(len(idx), bool)
-        nearest = None
-        if centerline_lps is not None:
-            from scipy.spatial import cKDTree
-
-            cl = np.asarray(centerline_lps, float)
-            _, nearest = cKDTree(cl).query(centres)
-            ends = {0: 0, 1: len(cl) - 1}
-        for which, (point, normal) in enumerate(openings):
-            normal = np.asarray(normal, float) / np.linalg.norm(normal)
-            out = (centres - np.asarray(point, float)) @ normal > 0
-            if nearest is not None and which in ends:
-                out &= nearest == ends[which]
-            beyond |= out
-        removed_open = int(beyond.sum())
-        keep[tuple(idx[beyond].T)] = False
+    removed_open = _remove_openings(keep, cell_centres_lps, openings, centerline_lps)
 
     # --- keep the largest face-connected piece
     labels, n = ndimage.label(keep)
@@ -196,47 +244,14 @@ def build_wall_model(volume: Volume, wall: np.ndarray, lumen: np.ndarray, d: int
     vijk = np.stack(np.unravel_index(uniq, tuple(nv_shape)), axis=1).astype(float)
     vertices = volume.index_to_lps(grid_origin + vijk * step_arr)
 
-    # --- springs
-    pairs = np.array(_EDGES + _FACE_DIAGONALS + _BODY_DIAGONALS)
-    kinds = np.array([0] * len(_EDGES) + [1] * len(_FACE_DIAGONALS) + [2] * len(_BODY_DIAGONALS))
-    s = hexes[:, pairs]  # (M, 28, 2)
-    s = np.sort(s.reshape(-1, 2), axis=1)
-    kind_all = np.tile(kinds, len(hexes))
-    key = s[:, 0] * len(vertices) + s[:, 1]
-    _, first = np.unique(key, return_index=True)
-    springs = s[first]
-    spring_kind = kind_all[first]
-    rest_length = np.linalg.norm(vertices[springs[:, 0]] - vertices[springs[:, 1]], axis=1)
+    springs, spring_kind, rest_length = _springs(hexes, vertices)
 
     # --- lumped masses (equal share of each cell's volume), normalised to mean 1
     mass = np.bincount(hexes.ravel(), minlength=len(vertices)).astype(float)
     mass /= mass.mean()
 
-    # --- surface vertex sets from the faces of kept cells
-    inner = np.zeros(len(vertices), bool)
-    outer = np.zeros(len(vertices), bool)
-    boundary = np.zeros(len(vertices), bool)
-    cut_normal = np.zeros((len(vertices), 3))
-    axes_lps = volume.direction * (volume.spacing * step_arr)[None, :]  # LPS vector of one cell step along i, j, k
-    shape_c = np.array(ncells)
-    for off, local in _FACES:
-        nb = cells + np.array(off[::-1])  # neighbour in (k, j, i)
-        inside = np.all((nb >= 0) & (nb < shape_c), axis=1)
-        nbc = np.clip(nb, 0, shape_c - 1)
-        nb_keep = inside & keep[nbc[:, 0], nbc[:, 1], nbc[:, 2]]
-        nb_cut = inside & incision_cells[nbc[:, 0], nbc[:, 1], nbc[:, 2]] & ~nb_keep
-        nb_lumen = inside & lumen_cells[nbc[:, 0], nbc[:, 1], nbc[:, 2]] & ~nb_keep & ~nb_cut
-        free = ~nb_keep
-        vids = hexes[:, list(local)]
-        inner[vids[nb_lumen].ravel()] = True
-        boundary[vids[nb_cut].ravel()] = True
-        # from the removed cell toward the kept one: which side of the cut this face is on
-        step_lps = -(axes_lps @ np.array(off, float))
-        for c in range(4):
-            np.add.at(cut_normal, vids[nb_cut][:, c], step_lps)
-        outer[vids[free & ~nb_lumen & ~nb_cut].ravel()] = True
-    inner |= boundary
-    outer |= boundary
+    inner, outer, boundary, cut_normal = _surface_sets(volume, cells, hexes, len(vertices), keep, incision_cells,
+                                                       lumen_cells, step_arr, ncells)
 
     return WallModel(vertices=vertices, hexes=hexes, cells_ijk=cells_ijk, springs=springs,
                      spring_kind=spring_kind, rest_length=rest_length, mass=mass, inner=inner, outer=outer,
