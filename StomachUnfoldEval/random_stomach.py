@@ -11,7 +11,7 @@ the duodenum leaves the end of the pyloric canal going right and posterior, both
 intra-abdominal fat, spine, liver (right), spleen (left, posterior), both lung bases above the diaphragm (4-8 mm
 of tissue from the stomach wall over the dome), a gas-filled transverse colon under the greater curvature (3-8 mm
 from the wall at the closest). Retained water (~10 HU) fills the lumen below a flat level on the dependent
-(posterior, +y) side on some seeds. Dense beads (400 HU) sit half-embedded on the mucosa everywhere except near
+(posterior, +y) side on some seeds. Dense beads (800 HU, radius max(1.5 mm, the coarsest spacing)) sit half-embedded on the mucosa everywhere except near
 the greater curvature (the default incision) and the openings. Then Gaussian scanner blur and noise, spacing
 and direction matrix drawn per seed.
 
@@ -47,7 +47,7 @@ __all__ = ["SIZES", "SHAPES", "HU", "LABELS", "random_stomach", "write_random_st
 SIZES = {"tiny": ((1.7, 2.1), (2.0, 2.5)), "small": ((1.0, 1.4), (1.0, 2.5)), "full": ((0.6, 0.9), (0.6, 2.5))}
 SHAPES = ("j", "steer_horn", "cascade")
 HU = {"air": -1000, "lung": -850, "fat": -90, "tissue": 30, "muscle": 45, "wall": 40, "liver": 60, "spleen": 50,
-      "bone": 350, "colon_wall": 40, "marker": 400, "fluid": 10}
+      "bone": 350, "colon_wall": 40, "marker": 800, "fluid": 10}
 LABELS = {"background": 0, "lumen_air": 1, "lumen_fluid": 2, "wall": 3, "marker": 4, "lung": 5, "colon_gas": 6,
           "tube_wall": 7, "tube_lumen": 8, "liver": 9, "spleen": 10, "outside_air": 11, "colon_wall": 12}
 GEODESIC_GRID_MM = 1.0
@@ -705,6 +705,7 @@ def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h
     removed = model.gc_tree.query(Vc)[0] < CUT_BAND_MM
     geo_cut = surface_geodesics(Vc, Tc, sel, sdf, removed=removed, keep_out=(model.gc_tree, CUT_BAND_MM),
                                 endpoints=ends, graph=G)
+    geo = np.fmin(geo, geo_cut)            # a path that avoids the cut is a path on the closed surface too
     area = float(np.sum(np.linalg.norm(np.cross(Vc[Tc[:, 1]] - Vc[Tc[:, 0]], Vc[Tc[:, 2]] - Vc[Tc[:, 0]]), axis=1))
                  / 2)
     lumen_ml = float(np.sum(F < 0) * h ** 3 / 1000.0)
@@ -977,7 +978,7 @@ def random_stomach(seed, size: str = "small", labels: bool = False, geodesics: b
         _paint_stomach(model, P, fr, f, fluid_y, d["fluid_hu"], v, lb)
         vals[k0:k1] = v.reshape(k1 - k0, n[1], n[0])
         labs[k0:k1] = lb.reshape(k1 - k0, n[1], n[0])
-    bead = float(max(1.5, 0.6 * sp.max()))
+    bead = float(max(1.5, 1.0 * sp.max()))
     _paint_markers(vals, labs, lo, sp, G["markers_lps"], bead)
     vals = gaussian_filter(vals, float(d["blur_vox"]), mode="nearest")
     nrng = np.random.default_rng(d["noise_seed"])
@@ -1010,7 +1011,8 @@ def _truth(model, d, G, sur, vol, bead, fluid_y):
             "lumen_kind": "air_fluid" if fluid_y is not None else "air",
             "fluid_level_lps_y": fluid_y, "fluid_hu": float(d["fluid_hu"]) if fluid_y is not None else None,
             "dome_top_lps": _dome_top(model).tolist(),
-            "colon_gap_mm": float(sur.colon_gap), "lung_gap_mm": float(d["lung_gap_mm"]),
+            "colon_gap_mm": float(sur.colon_gap) if sur is not None else None,
+            "lung_gap_mm": float(d["lung_gap_mm"]) if sur is not None else None,
             "lumen_volume_ml": G["lumen_volume_ml"], "mucosa_area_mm2": G["mucosa_area_mm2"],
             "markers": _marker_truth(model, G["markers_lps"], fluid_y, bead), "marker_radius_mm": bead,
             "geodesic_mm": _nan_list(G["geodesic"]), "geodesic_cut_mm": _nan_list(G["geodesic_cut"]),
@@ -1095,3 +1097,141 @@ def make_contact_sheet(path, seeds=(0, 1, 2, 3, 4, 5), size: str = "tiny"):
     fig.savefig(path, dpi=80)
     plt.close(fig)
     return path
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# hybrids: a drawn stomach pasted into a real CT
+# ---------------------------------------------------------------------------------------------------------------
+def _default_centre(ct: Volume, axes_mm):
+    """Dome centre (LPS mm) for a pasted stomach: under the left lung base, else the left upper abdomen."""
+    from scipy import ndimage
+
+    A, o, sp = lps_array(ct)                               # [z, y, x]
+    f = np.maximum(1, np.round(4.0 / sp).astype(int))     # about 4 mm cells
+    a = A[::f[2], ::f[1], ::f[0]].astype(np.float32)
+    s = sp * f
+    zz = o[2] + s[2] * np.arange(a.shape[0])
+    yy = o[1] + s[1] * np.arange(a.shape[1])
+    xx = o[0] + s[0] * np.arange(a.shape[2])
+    body = a > -500
+    lab, n = ndimage.label(body)
+    if n:
+        sizes = ndimage.sum(body, lab, index=np.arange(1, n + 1))
+        body = lab == (1 + int(np.argmax(sizes)))
+    body_filled = ndimage.binary_fill_holes(body, structure=np.ones((1, 3, 3)))
+    if not body.any():
+        c = 0.5 * (ct.bounds_lps()[0] + ct.bounds_lps()[1])
+        return c
+    kz, ky, kx = np.nonzero(body)
+    bx0, bx1 = xx[kx].min(), xx[kx].max()
+    by = float(np.mean(yy[ky]))
+    # lungs: large gas components inside the body's outline that reach the top of the volume
+    gas = (a < -400) & body_filled
+    lab, n = ndimage.label(gas)
+    left_base = None
+    if n:
+        vox_ml = float(np.prod(s)) / 1000.0
+        sizes = ndimage.sum(gas, lab, index=np.arange(1, n + 1)) * vox_ml
+        mean_hu = ndimage.mean(a, lab, index=np.arange(1, n + 1))
+        # lung: reaches the top, parenchyma HU (vessels in it) rather than the near -1000 of bowel gas
+        for comp in np.nonzero((sizes > 30.0) & (mean_hu > -800))[0] + 1:
+            cz, cy, cx = np.nonzero(lab == comp)
+            if cz.max() < a.shape[0] - 2 or np.mean(xx[cx]) <= 0.5 * (bx0 + bx1):
+                continue                                  # not a lung, or the right lung
+            zlow = float(np.percentile(zz[cz], 3))
+            low = zz[cz] < zlow + 25
+            cand = (float(np.mean(xx[cx[low]])), float(np.mean(yy[cy[low]])), zlow)
+            if left_base is None or cand[2] < left_base[2]:
+                left_base = cand
+    lo, hi = ct.bounds_lps()
+    if left_base is not None:
+        x, y, zb = left_base
+        c = np.array([x, y, zb - 8.0 - axes_mm[2]])
+    else:
+        c = np.array([bx0 + 0.68 * (bx1 - bx0), by, hi[2] - axes_mm[2] - 15.0])
+        if hi[2] - lo[2] < 150.0:
+            c[2] = 0.5 * (lo[2] + hi[2]) + 20.0       # a thin slab: it crosses the upper body of the stomach
+    c[2] = np.clip(c[2], lo[2], hi[2] + 0.5 * axes_mm[2])
+    return c
+
+
+def _paint_beads(arr, vol: Volume, centres, bead, value=HU["marker"]):
+    """Partial-volume beads (LPS centres, radius mm) painted into arr (float, the layout of ``vol``)."""
+    delta = float(np.mean(vol.spacing))
+    for c in np.asarray(centres, float).reshape(-1, 3):
+        ijk = vol.lps_to_index(c[None])[0]
+        r_vox = np.ceil((bead + 2 * delta) / vol.spacing).astype(int) + 1
+        lo = np.maximum(np.floor(ijk).astype(int) - r_vox, 0)
+        hi = np.minimum(np.floor(ijk).astype(int) + r_vox + 1, np.array(vol.size))
+        if np.any(hi <= lo):
+            continue
+        k, j, i = np.mgrid[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+        P = vol.index_to_lps(np.stack([i.ravel(), j.ravel(), k.ravel()], 1)).reshape(k.shape + (3,))
+        r = np.linalg.norm(P - c, axis=-1)
+        cov = np.clip(0.5 - (r - bead) / delta, 0.0, 1.0)
+        sub = arr[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+        sub[:] = sub * (1 - cov) + value * cov
+
+
+def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, **overrides):
+    """Paste a drawn stomach (lumen air/fluid, wall, markers; LPS mm, HU) into a real CT; returns (Volume, truth).
+
+    The dome centre goes to ``centre_lps`` (default: under the left lung base, else the left upper abdomen); the
+    model is sampled on the CT's own grid (any direction), with partial-volume edges and noise; gas of the CT
+    within ``halo_mm`` of the outer wall becomes soft tissue, so the lumen stays sealed. The input is not modified.
+    """
+    t0 = time.perf_counter()
+    d0 = draw_parameters(seed, "small", **overrides)
+    axes = np.asarray(d0["dome_axes_mm"]) * d0["scale"]
+    c = np.asarray(centre_lps, float) if centre_lps is not None else _default_centre(ct, axes)
+    d = draw_parameters(seed, "small", **dict(overrides, dome_centre_lps=[float(v) for v in c]))
+    d["oesophagus_open_mm"] = 0.0
+    d["duodenum_open_mm"] = 0.0
+    model = StomachModel(d)
+    mrng = np.random.default_rng(d["marker_seed"])
+    G = _model_geodesics(model, mrng, d["n_markers"], d["fluid_depth_fraction"] if d["fluid"] else None)
+    fluid_y = G["fluid_y"]
+    arr = np.array(ct.array, dtype=np.float32, copy=True)
+    # index box of the model (lumen + wall + halo) and of the tubes near it
+    lo, hi = model.lo - halo_mm - 2, model.hi + halo_mm + 2
+    corners = np.array([[a, b, e] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for e in (lo[2], hi[2])])
+    ijk = ct.lps_to_index(corners)
+    i0 = np.maximum(np.floor(ijk.min(0)).astype(int), 0)
+    i1 = np.minimum(np.ceil(ijk.max(0)).astype(int) + 1, np.array(ct.size))
+    sp = ct.spacing
+    delta = float(np.mean(sp))
+    nrng = np.random.default_rng(d["noise_seed"])
+    if np.all(i1 > i0):
+        for k0 in range(i0[2], i1[2], 8):
+            k1 = min(i1[2], k0 + 8)
+            k, j, i = np.mgrid[k0:k1, i0[1]:i1[1], i0[0]:i1[0]]
+            P = ct.index_to_lps(np.stack([i.ravel(), j.ravel(), k.ravel()], 1).astype(float))
+            fr, f = model.fast(P)
+            cur = arr[k0:k1, i0[1]:i1[1], i0[0]:i1[0]].reshape(-1)
+            alpha = np.clip(0.5 - fr / delta, 0, 1)                    # lumen fraction
+            beta = np.clip(0.5 - (f - model.w) / delta, 0, 1)          # lumen + wall fraction
+            lum_hu = np.full(len(P), float(HU["air"]))
+            if fluid_y is not None:
+                phi = np.clip(0.5 + (P[:, 1] - fluid_y) / delta, 0, 1)
+                lum_hu = lum_hu * (1 - phi) + float(d["fluid_hu"]) * phi
+            model_hu = alpha * lum_hu + (1 - alpha) * HU["wall"]
+            halo = (f >= model.w) & (f < model.w + halo_mm) & (cur < -300)
+            cur = np.where(halo, HU["tissue"], cur)
+            tw, _ = model.tubes(P, fr, hybrid=True)
+            cur = np.where(tw & (beta < 0.5), HU["wall"], cur)
+            new = (1 - beta) * cur + beta * model_hu
+            new += nrng.standard_normal(len(P)).astype(np.float32) * float(d["noise_hu"]) * np.maximum(beta, tw)
+            arr[k0:k1, i0[1]:i1[1], i0[0]:i1[0]] = new.reshape(k1 - k0, i1[1] - i0[1], i1[0] - i0[0])
+    bead = float(max(1.5, 1.0 * float(np.max(sp))))
+    _paint_beads(arr, ct, G["markers_lps"], bead)
+    np.clip(arr, -1024, 3071, out=arr)
+    dtype = ct.array.dtype if ct.array.dtype.kind in "iu" and np.iinfo(ct.array.dtype).bits >= 16 else np.int16
+    vol = Volume(np.rint(arr).astype(dtype), ct.spacing.copy(), ct.origin.copy(), ct.direction.copy())
+    truth = _truth(model, d, G, None, vol, bead, fluid_y)
+    truth["kind"] = "hybrid"
+    inside = vol.contains_lps(np.asarray(G["markers_lps"]))
+    for m, ok in zip(truth["markers"], inside):
+        m["in_volume"] = bool(ok)
+    truth["dome_centre_lps"] = c.tolist()
+    truth["seconds"] = {"total": time.perf_counter() - t0}
+    return vol, truth
