@@ -743,6 +743,7 @@ class StomachUnfoldWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             node.CreateDefaultDisplayNodes()
             p.unfoldedFindings = node
         self._observeFindings([p.ctFindings, p.unfoldedFindings])
+        self.ui.findingsLabel.text = _("Mark a finding in either view; it is shown in the other.")
 
     def _onFindingPlaced(self, caller, event):
         """A finding placed in one view is copied, mapped, into the other; on the unfolded view also jump the slices."""
