@@ -22,6 +22,7 @@ import numpy as np
 from ..correspondence import MapCorrespondence
 from ..errors import AnatomyError, SimulationError
 from ..frontend import timed_stage
+from ..geometry import Volume
 from ..surface import (compact, cut_surface, inner_surface, largest_component, perpendicular, sample_flat_map,
                        signed_area_2d, smooth_tangents, unit, vertex_normals)
 from . import Method, Unfolding, register
@@ -30,6 +31,27 @@ __all__ = ["IsometricFlattening", "arap", "triangle_frames", "cot_laplacian", "s
            "open_surface", "taubin_smooth", "IsoSurface", "MAX_MESH_VERTICES"]
 
 MAX_MESH_VERTICES = 40000
+
+
+def _unique_rows(e: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
+    """np.unique(e, axis=0) for (N,2) non-negative int rows, through one sorted int64 key per row (much faster)."""
+    e = np.asarray(e, np.int64)
+    m = int(e.max()) + 1 if len(e) else 1
+    key = e[:, 0] * m + e[:, 1]
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    first = np.ones(len(ks), bool)
+    first[1:] = ks[1:] != ks[:-1]
+    keys = ks[first]
+    rows = np.stack([keys // m, keys % m], 1)
+    out = [rows]
+    if return_inverse:
+        inv = np.empty(len(key), np.int64)
+        inv[order] = np.cumsum(first) - 1
+        out.append(inv)
+    if return_counts:
+        out.append(np.diff(np.append(np.flatnonzero(first), len(ks))))
+    return out[0] if len(out) == 1 else tuple(out)
 
 
 def triangle_frames(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -160,7 +182,7 @@ def untangle(uv: np.ndarray, f: np.ndarray, rounds: int = 20) -> tuple[np.ndarra
     A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv)).tocsr()
     deg = np.maximum(np.asarray(A.sum(1)).ravel(), 1)
     ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    ue, cnt = np.unique(ee, axis=0, return_counts=True)
+    ue, cnt = _unique_rows(ee, return_counts=True)
     on_b = np.zeros(nv, bool)
     on_b[ue[cnt == 1].ravel()] = True
 
@@ -198,7 +220,7 @@ def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1
     f0 = len(f)
     for _ in range(rounds):
         ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        ue, inv, cnt = np.unique(ee, axis=0, return_inverse=True, return_counts=True)
+        ue, inv, cnt = _unique_rows(ee, return_inverse=True, return_counts=True)
         on_b = np.zeros(len(v), bool)
         on_b[ue[cnt == 1].ravel()] = True
         sa = signed_area_2d(uv, f)
@@ -225,7 +247,7 @@ def stretch_stats(v: np.ndarray, f: np.ndarray, uv: np.ndarray) -> dict:
     J = B @ np.linalg.inv(A)
     s = np.linalg.svd(J, compute_uv=False)
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    e = np.unique(e, axis=0)
+    e = _unique_rows(e)
     l0 = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
     l1 = np.linalg.norm(uv[e[:, 0]] - uv[e[:, 1]], axis=1)
     r = l1 / np.maximum(l0, 1e-12)
@@ -312,7 +334,7 @@ def cut_along_path(v: np.ndarray, f: np.ndarray, path: np.ndarray, ends_on_bound
 
 def _edges(f: np.ndarray) -> np.ndarray:
     """Unique undirected edges (E,2) of triangles f."""
-    return np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    return _unique_rows(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1))
 
 
 def taubin_smooth(v: np.ndarray, f: np.ndarray, iterations: int = 10, lam: float = 0.5, mu: float = -0.53,
@@ -360,7 +382,7 @@ def _boundary_loops(f: np.ndarray) -> list:
     from scipy.sparse.csgraph import connected_components
 
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    ue, cnt = np.unique(e, axis=0, return_counts=True)
+    ue, cnt = _unique_rows(e, return_counts=True)
     b = ue[cnt == 1]
     if not len(b):
         return []
@@ -477,13 +499,18 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     G2 = coo_matrix((np.ones(len(e2)), (e2[:, 0], e2[:, 1])), shape=(len(v2), len(v2))).tocsr()
     order, pr = breadth_first_order(G2, 0, directed=False, return_predecessors=True)
     theta = th.copy()
-    for x in order[1:]:
+    level = np.full(len(v2), -1, np.int64)
+    level[order[0]] = 0
+    for x in order[1:]:                       # cheap: integers only; the unwrap itself runs level by level
+        level[x] = level[pr[x]] + 1
+    for L in range(1, int(level.max()) + 1):
+        x = np.flatnonzero(level == L)
         p_ = pr[x]
         theta[x] = theta[p_] + np.mod(th[x] - theta[p_] + np.pi, 2 * np.pi) - np.pi
     theta -= theta.min()
     progress(0.9)
     edges2 = np.sort(np.concatenate([f2[:, [0, 1]], f2[:, [1, 2]], f2[:, [2, 0]]]), axis=1)
-    ue, cnt = np.unique(edges2, axis=0, return_counts=True)
+    ue, cnt = _unique_rows(edges2, return_counts=True)
     euler = len(v2) - len(ue) + len(f2)
     bnd = ue[cnt == 1]
     n_loops = len(_boundary_loops(f2))
@@ -530,12 +557,32 @@ class IsometricFlattening(Method):
         if info["flipped_final"]:
             warnings.append(f"the flat map has {info['flipped_final']} flipped triangles")
         with timed_stage(progress, "volume", seconds, 0.6, 1.0) as report:
-            vol, fwd, inv, mesh, vinfo = sample_flat_map(prep, cut, uv, report)
+            # cubic B-spline sampling of the CT: trilinear sampling of thick slices terraces the view's first hit
+            vol, fwd, inv, mesh, vinfo = sample_flat_map(_cubic_prep(prep), cut, uv, report)
         cut_len = float(np.linalg.norm(cut.v[cut.boundary_edges[:, 0]] - cut.v[cut.boundary_edges[:, 1]],
                                        axis=1).sum()) if len(cut.boundary_edges) else 0.0
         section = {**cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
                    "flipped_triangle_fraction": flipped_frac, "start_map_seconds": t_init}
         return Unfolding(vol, MapCorrespondence(fwd, inv), mesh, section, warnings, seconds)
+
+
+class _CubicVolume(Volume):
+    """A Volume holding cubic B-spline coefficients: ``sample`` interpolates with the cubic spline (HU, LPS mm)."""
+
+    def sample(self, lps, order: int = 3, cval: float = -1024.0) -> np.ndarray:
+        """Cubic B-spline interpolation at LPS points (mm), ``cval`` (HU) outside."""
+        return super().sample(lps, order=3, cval=cval)
+
+
+def _cubic_prep(prep):
+    """The prepared stomach with its crop replaced by cubic B-spline coefficients of the crop (same geometry)."""
+    from dataclasses import replace
+
+    from scipy import ndimage
+
+    c = prep.crop
+    coef = ndimage.spline_filter(np.asarray(c.array, np.float32), order=3, output=np.float32, mode="nearest")
+    return replace(prep, crop=_CubicVolume(coef, c.spacing, c.origin, c.direction))
 
 
 def _with_faces(cut, f: np.ndarray, uv: np.ndarray):
@@ -548,7 +595,7 @@ def _with_faces(cut, f: np.ndarray, uv: np.ndarray):
     remap[used] = np.arange(len(used))
     f = remap[f]
     ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    ue, cnt = np.unique(ee, axis=0, return_counts=True)
+    ue, cnt = _unique_rows(ee, return_counts=True)
     per_vertex = {fl.name: getattr(cut, fl.name)[used] for fl in fields(cut)
                   if fl.name not in ("f", "boundary_edges", "Pd") and isinstance(getattr(cut, fl.name), np.ndarray)
                   and len(getattr(cut, fl.name)) == nv}
