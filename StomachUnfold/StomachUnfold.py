@@ -818,11 +818,11 @@ class StomachUnfoldWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         """Unfold with a progress dialog; its Cancel stops the run and leaves the scene as it was."""
         if self._running:
             return
-        from StomachUnfoldLib.errors import Cancelled
-
         with slicer.util.tryWithErrorDisplay(_("Unfolding failed."), waitCursor=True):
             if not self._ensureDependencies():
                 return
+            from StomachUnfoldLib.errors import Cancelled
+
             cameraNode = self._cameraNode()  # before any output node is made
             self._running = True
             self._checkCanApply()

@@ -158,6 +158,12 @@ def test_missing_package_is_offered_for_pip_install_after_confirmation(gui, monk
     monkeypatch.setattr(slicer.util, "confirmOkCancelDisplay", lambda text, **kw: asked.append(text) or True)
     assert widget._ensureDependencies() is False  # the user said OK; still missing after the (recorded) install
     assert installed == ["no-such-package-xyz"] and "no-such-package-xyz" in asked[0]
+    # from a source tree without the library installed: the repository itself is offered, without its deps
+    monkeypatch.setattr(module.pythonModule, "libraryAvailable", lambda: False)
+    installed.clear()
+    widget._ensureDependencies()
+    assert installed[-1] == f'--no-deps "{ROOT}"'
+    assert module.pythonModule.librarySourceTree() == ROOT
 
 
 # ---------------------------------------------------------------- defects 6 and 7: Cancel
@@ -258,6 +264,9 @@ def test_enter_exit_and_scene_close_ten_times_leave_no_extra_observers_or_nodes(
     assert widget.ui.applyButton.enabled
     points.SetNthControlPointLabel(1, "antrum")
     assert not widget.ui.applyButton.enabled and "pylorus" in widget.ui.applyButton.toolTip
+    module.close()
+    module.unload()  # application exit: cleanup() removes every observer and GUI connection
+    assert widget.Observations == [] and widget._parameterNode is None
 
 
 # ---------------------------------------------------------------- defect 10
