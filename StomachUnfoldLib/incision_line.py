@@ -15,11 +15,12 @@ from scipy import ndimage
 
 from .errors import AnatomyError, InputError
 from .geometry import Volume
+from .params import INCISION_SIDES
 
 __all__ = ["Incision", "cutting_directions", "compute_incision_line", "incision_from_curve",
            "incision_surface_points", "SIDES"]
 
-SIDES = ("greater", "lesser", "anterior", "posterior")
+SIDES = INCISION_SIDES  # defined once, in params
 
 
 @dataclass

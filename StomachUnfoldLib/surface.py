@@ -153,15 +153,15 @@ def ray_exits(field: np.ndarray, level: float, crop: Volume, origins: np.ndarray
 
 
 def inner_surface(lumen: np.ndarray, crop: Volume, max_vertices: int, mask_given: bool = False):
-    """Marching-cubes surface (LPS mm vertices, triangles) of the inner wall (see surface_field), <= ~max_vertices."""
-    from skimage.measure import marching_cubes
+    """Iso-surface (LPS mm vertices, triangles) of the inner wall (see surface_field), <= ~max_vertices."""
+    from .isosurface import isosurface
 
     field, level = surface_field(crop, lumen, mask_given)
     sm = np.pad(field, 2, constant_values=np.float32(1e4 if not mask_given else 0.0))
     edge = lumen & ~ndimage.binary_erosion(lumen, border_value=1)
     n_edge = int(edge.sum())
     step = max(1, int(np.ceil(np.sqrt(n_edge / float(max_vertices)))))
-    verts, faces, _, _ = marching_cubes(sm, level=level, step_size=step, allow_degenerate=False)
+    verts, faces = isosurface(sm, level, step)
     ijk = verts[:, ::-1] - 2.0
     return crop.index_to_lps(ijk), faces.astype(np.int64), step
 
