@@ -22,7 +22,6 @@ import numpy as np
 from ..correspondence import MapCorrespondence
 from ..errors import AnatomyError, SimulationError
 from ..frontend import timed_stage
-from ..geometry import Volume
 from ..surface import (compact, cut_surface, inner_surface, largest_component, perpendicular, sample_flat_map,
                        signed_area_2d, smooth_tangents, unit, vertex_normals)
 from . import Method, Unfolding, register
@@ -557,32 +556,12 @@ class IsometricFlattening(Method):
         if info["flipped_final"]:
             warnings.append(f"the flat map has {info['flipped_final']} flipped triangles")
         with timed_stage(progress, "volume", seconds, 0.6, 1.0) as report:
-            # cubic B-spline sampling of the CT: trilinear sampling of thick slices terraces the view's first hit
-            vol, fwd, inv, mesh, vinfo = sample_flat_map(_cubic_prep(prep), cut, uv, report)
+            vol, fwd, inv, mesh, vinfo = sample_flat_map(prep, cut, uv, report)
         cut_len = float(np.linalg.norm(cut.v[cut.boundary_edges[:, 0]] - cut.v[cut.boundary_edges[:, 1]],
                                        axis=1).sum()) if len(cut.boundary_edges) else 0.0
         section = {**cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
                    "flipped_triangle_fraction": flipped_frac, "start_map_seconds": t_init}
         return Unfolding(vol, MapCorrespondence(fwd, inv), mesh, section, warnings, seconds)
-
-
-class _CubicVolume(Volume):
-    """A Volume holding cubic B-spline coefficients: ``sample`` interpolates with the cubic spline (HU, LPS mm)."""
-
-    def sample(self, lps, order: int = 3, cval: float = -1024.0) -> np.ndarray:
-        """Cubic B-spline interpolation at LPS points (mm), ``cval`` (HU) outside."""
-        return super().sample(lps, order=3, cval=cval)
-
-
-def _cubic_prep(prep):
-    """The prepared stomach with its crop replaced by cubic B-spline coefficients of the crop (same geometry)."""
-    from dataclasses import replace
-
-    from scipy import ndimage
-
-    c = prep.crop
-    coef = ndimage.spline_filter(np.asarray(c.array, np.float32), order=3, output=np.float32, mode="nearest")
-    return replace(prep, crop=_CubicVolume(coef, c.spacing, c.origin, c.direction))
 
 
 def _with_faces(cut, f: np.ndarray, uv: np.ndarray):
