@@ -257,18 +257,48 @@ def _touches_faces(mask: np.ndarray, axes) -> bool:
 
 
 def flood_fill(image: np.ndarray, seed) -> np.ndarray:
-    """Bool mask of the voxels 6-connected to ``seed`` (k, j, i) holding its value (skimage's flood, connectivity=1)."""
+    """Bool mask of the voxels 6-connected to ``seed`` (k, j, i) holding its value (skimage's flood, connectivity=1).
+
+    SimpleITK's ConnectedThreshold runs on a box only: first the box of the seed's component on a 4x
+    subsample (plus a margin), grown on each side the region touches until it touches no inner face, so the
+    result is exact whatever the guess (a full-size CT costs a whole-image flood 2-3x more).
+    """
     import SimpleITK as sitk
 
     image = np.asarray(image, bool)
     s = tuple(int(x) for x in seed)
-    if len(s) != image.ndim or any(not 0 <= x < n for x, n in zip(s, image.shape)):
-        raise InputError(f"flood seed {list(s)} lies outside the array of shape {image.shape}")
-    value = int(image[s])
-    out = sitk.ConnectedThreshold(sitk.GetImageFromArray(image.view(np.uint8)), seedList=[s[::-1]], lower=value,
-                                  upper=value, replaceValue=1,
-                                  connectivity=sitk.ConnectedThresholdImageFilter.FaceConnectivity)
-    return sitk.GetArrayFromImage(out).view(bool)
+    if image.ndim != 3 or len(s) != 3 or any(not 0 <= x < n for x, n in zip(s, image.shape)):
+        raise InputError(f"flood seed {list(s)} lies outside the 3-D array of shape {image.shape}")
+    value = bool(image[s])
+    shape, sv, b = np.array(image.shape), np.array(s), 4
+    lab, _ = ndimage.label(image[::b, ::b, ::b] == value)
+    cs = tuple(sv // b)
+    if lab[cs]:
+        box = ndimage.find_objects(lab, max_label=int(lab[cs]))[int(lab[cs]) - 1]
+        lo = np.minimum(np.maximum(np.array([x.start for x in box]) * b - b, 0), sv)
+        hi = np.maximum(np.minimum(np.array([x.stop for x in box]) * b + b, shape), sv + 1)
+    else:
+        lo, hi = np.maximum(sv - 16, 0), np.minimum(sv + 17, shape)
+    while True:
+        sub = np.ascontiguousarray(image[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]).view(np.uint8)
+        out = sitk.ConnectedThreshold(sitk.GetImageFromArray(sub), seedList=[tuple(int(x) for x in (sv - lo)[::-1])],
+                                      lower=int(value), upper=int(value), replaceValue=1,
+                                      connectivity=sitk.ConnectedThresholdImageFilter.FaceConnectivity)
+        reg = sitk.GetArrayFromImage(out).view(bool)
+        grown = False
+        for a in range(3):
+            n = int(hi[a] - lo[a])
+            if lo[a] > 0 and np.take(reg, 0, axis=a).any():
+                lo[a], grown = max(0, lo[a] - n), True
+            if hi[a] < shape[a] and np.take(reg, n - 1, axis=a).any():
+                hi[a], grown = min(int(shape[a]), hi[a] + n), True
+        if not grown:
+            break
+    if np.array_equal(lo, 0) and np.array_equal(hi, shape):
+        return reg
+    full = np.zeros(image.shape, bool)
+    full[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = reg
+    return full
 
 
 def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0, max_snap_mm: float = 20.0,

@@ -98,6 +98,22 @@ def test_flood_fill_equals_skimage(density):
             want = flood(img, seed, connectivity=1)
             assert got.dtype == bool and got.shape == img.shape
             assert np.array_equal(got, want), (shape, seed, on)
+    # larger arrays where the subsampled guess of the region's box is wrong and the box must grow: a blob
+    # with one-voxel threads between the subsample's planes, and near-percolation random masks
+    img = np.zeros((60, 64, 90), bool)
+    k, j, i = np.ogrid[:60, :64, :90]
+    img |= (k - 20) ** 2 + (j - 20) ** 2 + (i - 20) ** 2 < 36
+    img[21, 21, 20:87] = True
+    img[21:58, 22, 86] = True
+    img[57, 22:63, 86] = True
+    img[50:58, 55:63, 70:86] = True
+    for seed in ((20, 20, 20), (57, 60, 80), (0, 0, 0), (21, 22, 50)):
+        assert np.array_equal(flood_fill(img, seed), flood(img, seed, connectivity=1)), seed
+    for trial in range(4):
+        img = rng.random((50, 60, 70)) < 0.3 + 0.01 * trial
+        for seed in np.argwhere(img)[rng.integers(0, int(img.sum()), 3)]:
+            seed = tuple(int(x) for x in seed)
+            assert np.array_equal(flood_fill(img, seed), flood(img, seed, connectivity=1)), seed
     # non-contiguous input and the seed on an array corner
     img = (rng.random((24, 30, 18)) < 0.6)[:, ::2, :]
     for seed in ((0, 0, 0), (23, 14, 17)):
