@@ -4,8 +4,9 @@
 stomach mask -> crop -> wall region -> centreline -> incision line), then the method ``params.method``
 (``StomachUnfoldLib.methods``: the paper's mass-spring model by default), then the quality grade.
 ``UnfoldResult.write(out_dir)`` writes the same files for every method: ``unfolded.nrrd``, ``report.json``,
-``view.png``, ``model_rest.vtu``, ``model_unfolded.vtu``, ``incision.mrk.json`` and ``centerline.mrk.json``
-(and ``landmarks_unfolded.mrk.json`` when landmarks are given).
+``view.png``, ``distortion.nrrd`` and ``distortion.png`` (where lengths on the view can be trusted),
+``model_rest.vtu``, ``model_unfolded.vtu``, ``incision.mrk.json`` and ``centerline.mrk.json`` (and
+``landmarks_unfolded.mrk.json`` when landmarks are given).
 """
 from __future__ import annotations
 
@@ -50,10 +51,12 @@ class UnfoldResult:
     centerline_lps: np.ndarray
     incision_lps: np.ndarray
     lumen_crop: Volume | None = field(default=None, repr=False)
+    _distortion: object = field(default=None, repr=False)
 
     def write(self, out_dir, landmarks_lps: dict | None = None) -> dict:
         """Write the output files into ``out_dir`` all together or not at all; returns {name: path}."""
         from . import io as suio
+        from .distortion import write_distortion
         from .view import render_view
         from .wall_model import write_vtu
 
@@ -67,6 +70,7 @@ class UnfoldResult:
                 return os.path.join(tmp, name)
             suio.write_volume(self.unfolded, path("unfolded.nrrd"))
             render_view(self.unfolded, path("view.png"))
+            write_distortion(self.unfolded, self.distortion(), path("distortion.nrrd"), path("distortion.png"))
             write_vtu(self.mesh.rest_lps, self.mesh.cells, path("model_rest.vtu"))
             write_vtu(self.mesh.unfolded_lps, self.mesh.cells, path("model_unfolded.vtu"))
             suio.write_markups_curve(path("incision.mrk.json"), self.incision_lps, "incision", color=(1.0, 0.3, 0.2))
@@ -85,6 +89,14 @@ class UnfoldResult:
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         return names
+
+    def distortion(self):
+        """The view's DistortionMap (area and length scale per pixel), computed once."""
+        if self._distortion is None:
+            from .distortion import distortion_map
+
+            self._distortion = distortion_map(self.unfolded, self.mesh)
+        return self._distortion
 
     def map_landmarks(self, points_lps: dict) -> dict:
         """Map named LPS points (mm) of the original CT into the unfolded volume's LPS frame (NaN if not on the wall)."""
@@ -145,5 +157,6 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
         with timed_stage(prog, "quality", seconds, *span["quality"]):
             result.report.quality = quality_metrics(out.unfolded, out.correspondence, out.mesh, prep.lumen_crop,
                                                     result.centerline_lps)
+            result.report.quality["distortion_map"] = result.distortion().summary()
     seconds["total"] = time.perf_counter() - t_all
     return result

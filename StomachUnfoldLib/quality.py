@@ -54,28 +54,19 @@ GRADE_THRESHOLDS = {
 
 def surface_distortion(rest: np.ndarray, deformed: np.ndarray, tris: np.ndarray) -> dict:
     """Area and angle distortion of surface triangles (per-triangle 2D Jacobian singular values s1 >= s2)."""
-    def frame(p):
-        e1 = p[:, 1] - p[:, 0]
-        e2 = p[:, 2] - p[:, 0]
-        n = np.cross(e1, e2)
-        area = 0.5 * np.linalg.norm(n, axis=1)
-        u = e1 / np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-12)
-        w = np.cross(n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12), u)
-        return np.stack([np.einsum("ij,ij->i", e1, u), np.einsum("ij,ij->i", e1, w),
-                         np.einsum("ij,ij->i", e2, u), np.einsum("ij,ij->i", e2, w)], 1).reshape(-1, 2, 2), area
+    from .distortion import triangle_stretch
 
-    A, a0 = frame(rest[tris])
-    B, a1 = frame(deformed[tris])
-    ok = (a0 > 1e-9) & (a1 > 1e-9)
-    J = np.einsum("nij,njk->nik", np.transpose(B[ok], (0, 2, 1)), np.linalg.inv(np.transpose(A[ok], (0, 2, 1))))
-    s = np.linalg.svd(J, compute_uv=False)
-    area_ratio = s[:, 0] * s[:, 1]
-    conformal = s[:, 0] / np.maximum(s[:, 1], 1e-12)
+    s1, s2, a0, ok = triangle_stretch(rest, deformed, tris)
+    s1, s2 = s1[ok], s2[ok]
+    if not ok.any():
+        return {"area_distortion": 0.0, "angle_distortion": 0.0, "area_ratio_p5_p95": [1.0, 1.0], "triangles": 0}
+    area_ratio = s1 * s2
+    conformal = s1 / np.maximum(s2, 1e-12)
     w = a0[ok] / a0[ok].sum()
     return {"area_distortion": float(np.sum(w * np.abs(np.log(np.maximum(area_ratio, 1e-6))))),
             "angle_distortion": float(np.sum(w * (conformal - 1.0))),
             "area_ratio_p5_p95": [float(np.percentile(area_ratio, 5)), float(np.percentile(area_ratio, 95))],
-            "triangles": int(ok.sum())}
+            "max_stretch": float(np.max(s1)), "triangles": int(ok.sum())}
 
 
 def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, max_points: int = 8000,

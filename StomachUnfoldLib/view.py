@@ -13,7 +13,7 @@ import numpy as np
 
 from .geometry import Volume
 
-__all__ = ["first_hit", "shade_first_hit", "render_view"]
+__all__ = ["first_hit", "shade_first_hit", "render_view", "save_png"]
 
 
 def first_hit(unfolded: Volume, threshold_hu: float = -400.0, depth_mm: float = 2.5):
@@ -70,15 +70,14 @@ def shade_first_hit(unfolded: Volume, threshold_hu: float = -400.0, marker_hu: f
     return (np.clip(rgb, 0, 1) * 255).astype(np.uint8)[::-1]
 
 
-def render_view(unfolded: Volume, path: str, threshold_hu: float = -400.0, min_pixels: int = 512) -> str:
-    """Write the shaded first-hit view of the unfolded volume to a PNG (upscaled to at least ``min_pixels`` wide)."""
+def save_png(img: np.ndarray, path: str, spacing=(1.0, 1.0), min_pixels: int = 512) -> str:
+    """Write an RGB image (rows top to bottom) of a view with pixel ``spacing`` (mm, i then j) to PNG, upscaled."""
     from vtkmodules.util import numpy_support as ns
     from vtkmodules.vtkCommonDataModel import vtkImageData
     from vtkmodules.vtkIOImage import vtkPNGWriter  # the submodules alone: `import vtk` costs 0.7 s
 
-    img = shade_first_hit(unfolded, threshold_hu)
     # resample to square pixels, then upscale small views for legibility
-    ratio = unfolded.spacing[1] / unfolded.spacing[0]
+    ratio = float(spacing[1]) / float(spacing[0])
     rows = max(1, int(round(img.shape[0] * ratio)))
     ri = np.clip((np.arange(rows) / ratio).astype(int), 0, img.shape[0] - 1)
     img = img[ri]
@@ -95,5 +94,10 @@ def render_view(unfolded: Volume, path: str, threshold_hu: float = -400.0, min_p
     writer.SetInputData(vimg)
     writer.Write()
     if writer.GetErrorCode() or not os.path.exists(str(path)):
-        raise OSError(f"could not write the view PNG {path}: check that its folder exists and is writable")
+        raise OSError(f"could not write the PNG {path}: check that its folder exists and is writable")
     return str(path)
+
+
+def render_view(unfolded: Volume, path: str, threshold_hu: float = -400.0, min_pixels: int = 512) -> str:
+    """Write the shaded first-hit view of the unfolded volume to a PNG (upscaled to at least ``min_pixels`` wide)."""
+    return save_png(shade_first_hit(unfolded, threshold_hu), path, unfolded.spacing, min_pixels)
