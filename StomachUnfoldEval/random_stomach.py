@@ -322,14 +322,28 @@ class StomachModel:
             fr = f + float(self.d["rugae_height_mm"]) * ws * wphi * wdom * ridge
         return {"f_r": fr, "f": f, "idx": idx, "phi": phi, "fe": fe, "ft": ft}
 
-    def _build_coarse(self, h=2.0):
+    def _build_coarse(self, h=2.0, h0=6.0, band=8.0):
+        """Fields f_r and f on a 2 mm grid over the bounding box: exact near the surfaces, interpolated from a
+        6 mm grid elsewhere (where they are more than ``band`` mm from both)."""
         lo, hi = self.lo, self.hi
-        axs = [np.arange(lo[a], hi[a] + h, h) for a in range(3)]
-        Z, Y, X = np.meshgrid(axs[2], axs[1], axs[0], indexing="ij")
-        P = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
-        F = self.fields(P)
-        self._coarse = (np.array([axs[0][0], axs[1][0], axs[2][0]]), h,
-                        F["f_r"].reshape(X.shape).astype(np.float32), F["f"].reshape(X.shape).astype(np.float32))
+        r = int(round(h0 / h))
+        n = np.ceil((hi - lo) / (h * r)).astype(int) * r + 1       # 2 mm nodes, a multiple of r intervals
+        self.hi = lo + (n - 1) * h
+        axs0 = [lo[a] + h * r * np.arange((n[a] - 1) // r + 1) for a in range(3)]
+        Z, Y, X = np.meshgrid(axs0[2], axs0[1], axs0[0], indexing="ij")
+        F0 = self.fields(np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1))
+        out = []
+        for key in ("f_r", "f"):
+            A0 = F0[key].reshape(X.shape).astype(np.float32)
+            out.append(zoom(A0, [(r * (m - 1) + 1) / m for m in A0.shape], order=1, grid_mode=False,
+                            mode="nearest"))
+        Cr, Cf = out
+        near = np.nonzero(((np.abs(Cr) < band) | (np.abs(Cf - self.w) < band)).ravel())[0]
+        kk, jj, ii = np.unravel_index(near, Cr.shape)
+        F = self.fields(lo + h * np.stack([ii, jj, kk], 1))
+        Cr.ravel()[near] = F["f_r"]
+        Cf.ravel()[near] = F["f"]
+        self._coarse = (lo.copy(), h, Cr, Cf)
 
     def fast(self, P, band: float = 4.0, outer: bool = True):
         """(f_r, f) at LPS points (N,3): coarse-grid interpolation, exact where within ``band`` mm of a surface."""
@@ -551,11 +565,11 @@ def _resample(poly, step):
     return np.stack([np.interp(t, s, poly[:, a]) for a in range(3)], 1)
 
 
-def _shorten(paths, sdf: GridSDF, keep_out=None, levels=(4.0, 2.0, 1.25), iters=(40, 30, 25)):
+def _shorten(paths, sdf: GridSDF, keep_out=None, levels=(4.0, 2.0, 1.25), iters=(40, 30, 25), return_paths=False):
     """Shorten polylines on the zero level of ``sdf`` with fixed ends (damped Jacobi + projection), coarse to fine.
 
     ``keep_out`` = (cKDTree of points, radius mm): points are pushed to at least that distance from them.
-    Returns the lengths (mm).
+    Returns the lengths (mm) (and the shortened polylines with ``return_paths``).
     """
     cur = [np.asarray(p, float) for p in paths]
     for step, n_it in zip(levels, iters):
@@ -584,17 +598,19 @@ def _shorten(paths, sdf: GridSDF, keep_out=None, levels=(4.0, 2.0, 1.25), iters=
             X[idx] = Y
         X[idx] = sdf.project(X[idx], steps=2)
         cur = [X[a:b + 1] for a, b in zip(starts, ends)]
-    return np.array([np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)) for p in cur])
+    L = np.array([np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)) for p in cur])
+    return (L, cur) if return_paths else L
 
 
 def surface_geodesics(V, T, sources, sdf: GridSDF | None = None, removed=None, keep_out=None, rings: int = 3,
-                      endpoints=None, graph=None):
+                      endpoints=None, graph=None, pairs_only=None, return_paths=False):
     """Geodesic distances (M,M mm) between mesh vertices ``sources`` along the surface (V LPS mm, T triangles).
 
     Dijkstra on ``rings``-ring chord edges, then (with ``sdf``) each path is shortened on the implicit surface.
     ``removed``: boolean per vertex the paths may not use (a cut band); ``keep_out`` = (cKDTree, radius) keeps the
     shortened paths out of that band; ``endpoints`` (M,3) replace the sources' vertex positions as path ends.
-    NaN where two sources are not connected.
+    NaN where two sources are not connected. ``pairs_only``: boolean (M,M), compute only those pairs (others NaN);
+    ``return_paths``: also a dict (a, b) -> shortened polyline.
     """
     sources = np.asarray(sources, int)
     G = ring_graph(V, T, rings) if graph is None else graph
@@ -602,13 +618,24 @@ def surface_geodesics(V, T, sources, sdf: GridSDF | None = None, removed=None, k
         keep = sparse.diags((~np.asarray(removed, bool)).astype(np.float32))
         G = (keep @ G @ keep).tocsr()
         G.eliminate_zeros()
-    D, pred = dijkstra(G, directed=False, indices=sources, return_predecessors=True)
     M = len(sources)
     out = np.full((M, M), np.nan)
     np.fill_diagonal(out, 0.0)
-    pairs, polys = [], []
+    if pairs_only is not None:
+        pairs_only = np.triu(np.asarray(pairs_only, bool) | np.asarray(pairs_only, bool).T, 1)
+    rows = np.arange(M) if pairs_only is None else np.nonzero(np.any(pairs_only, axis=1))[0]
+    pairs, polys, paths = [], [], {}
+    if len(rows) == 0:
+        return (out, paths) if return_paths else out
+    D, pred = dijkstra(G, directed=False, indices=sources[rows], return_predecessors=True)
+    Dfull = np.full((M, D.shape[1]), np.inf)
+    Pfull = np.full((M, D.shape[1]), -9999, dtype=pred.dtype)
+    Dfull[rows], Pfull[rows] = D, pred
+    D, pred = Dfull, Pfull
     for a in range(M):
         for b in range(a + 1, M):
+            if pairs_only is not None and not (pairs_only[a, b] or pairs_only[b, a]):
+                continue
             d = D[a, sources[b]]
             if not np.isfinite(d):
                 continue
@@ -622,11 +649,12 @@ def surface_geodesics(V, T, sources, sdf: GridSDF | None = None, removed=None, k
                     pairs.append((a, b))
                     polys.append(poly)
     if sdf is not None and polys:
-        L = _shorten(polys, sdf, keep_out=keep_out)
-        for (a, b), l in zip(pairs, L):
+        L, cur = _shorten(polys, sdf, keep_out=keep_out, return_paths=True)
+        for (a, b), l, p in zip(pairs, L, cur):
             if np.isfinite(l) and l <= out[a, b] * 1.02 + 1.0:
                 out[a, b] = out[b, a] = l
-    return out
+                paths[(a, b)] = p
+    return (out, paths) if return_paths else out
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -701,10 +729,19 @@ def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h
     sel = _pick_markers(model, Vc, n_markers, rng, fluid_y)
     ends = sdf.project(Vc[sel], steps=4)
     G = ring_graph(Vc, Tc, 2)
-    geo = surface_geodesics(Vc, Tc, sel, sdf, endpoints=ends, graph=G)
+    geo, paths = surface_geodesics(Vc, Tc, sel, sdf, endpoints=ends, graph=G, return_paths=True)
+    # pairs whose shortest path keeps clear of the band around the greater curvature: the cut changes nothing
+    M = len(sel)
+    redo = np.ones((M, M), bool)
+    np.fill_diagonal(redo, False)
+    for (a, b), p in paths.items():
+        if np.min(model.gc_tree.query(p)[0]) > CUT_BAND_MM + 0.5:
+            redo[a, b] = redo[b, a] = False
+    redo = np.triu(redo, 1)
     removed = model.gc_tree.query(Vc)[0] < CUT_BAND_MM
     geo_cut = surface_geodesics(Vc, Tc, sel, sdf, removed=removed, keep_out=(model.gc_tree, CUT_BAND_MM),
-                                endpoints=ends, graph=G)
+                                endpoints=ends, graph=G, pairs_only=redo)
+    geo_cut = np.where(redo | redo.T, geo_cut, geo)
     geo = np.fmin(geo, geo_cut)            # a path that avoids the cut is a path on the closed surface too
     area = float(np.sum(np.linalg.norm(np.cross(Vc[Tc[:, 1]] - Vc[Tc[:, 0]], Vc[Tc[:, 2]] - Vc[Tc[:, 0]]), axis=1))
                  / 2)
@@ -1050,49 +1087,72 @@ def write_random_stomach(path, seed, size: str = "small", **kw):
     return path, json_path
 
 
-def make_contact_sheet(path, seeds=(0, 1, 2, 3, 4, 5), size: str = "tiny"):
-    """Write a PNG contact sheet of drawn stomachs: coronal and axial slices and a coronal minimum projection."""
+def make_contact_sheet(path, seeds=(0, 1, 2, 3, 4, 5), size: str = "tiny", hybrids=()):
+    """Write a PNG contact sheet of drawn stomachs (coronal and axial slices, coronal minimum projection);
+    ``hybrids``: (CT path, seed) pairs pasted with ``insert_into_ct`` get a row each."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axs = plt.subplots(len(seeds), 4, figsize=(16, 3.6 * len(seeds)))
+    rows = [("drawn", s) for s in seeds] + [("hybrid", h) for h in hybrids]
+    fig, axs = plt.subplots(len(rows), 4, figsize=(16, 3.6 * len(rows)))
     axs = np.atleast_2d(axs)
-    for r, seed in enumerate(seeds):
-        vol, truth = random_stomach(seed, size)
+    for r, (kind_row, item) in enumerate(rows):
+        if kind_row == "drawn":
+            vol, truth = random_stomach(item, size)
+            seed = item
+        else:
+            from StomachUnfoldLib.io import read_volume
+
+            ct_path, seed = item
+            vol, truth = insert_into_ct(read_volume(ct_path), seed)
         A, o, sp = lps_array(vol)                      # [z, y, x]
         cf = np.asarray(truth["draw"]["dome_centre_lps"])
         mk = np.array([m["lps"] for m in truth["markers"]])
-        yi = int(np.clip(round((cf[1] - o[1]) / sp[1]), 0, A.shape[1] - 1))
+        cl = np.array(truth["centerline_lps"])
+
+        def idx(v, a):
+            return int(np.clip(round((v - o[a]) / sp[a]), 0, A.shape[2 - a] - 1))
+
         ext_cor = [o[0], o[0] + sp[0] * (A.shape[2] - 1), o[2], o[2] + sp[2] * (A.shape[0] - 1)]
         ext_ax = [o[0], o[0] + sp[0] * (A.shape[2] - 1), o[1] + sp[1] * (A.shape[1] - 1), o[1]]
-        body_z = float(np.mean(np.array(truth["centerline_lps"])[:, 2]))
-        zi = int(np.clip(round((body_z - o[2]) / sp[2]), 0, A.shape[0] - 1))
-        low_y = int(np.clip(round((np.array(truth["centerline_lps"])[-1, 1] - o[1]) / sp[1]), 0, A.shape[1] - 1))
-        panels = [(A[:, yi, :], ext_cor, "coronal y=%.0f (dome centre)" % (o[1] + yi * sp[1]), "cor", yi),
-                  (A[:, low_y, :], ext_cor, "coronal y=%.0f (pylorus)" % (o[1] + low_y * sp[1]), "cor", low_y),
-                  (A[zi], ext_ax, "axial z=%.0f" % (o[2] + zi * sp[2]), "ax", zi),
-                  (A.min(axis=1), ext_cor, "coronal MinIP (gas)", "minip", None)]
-        for c, (img, ext, title, kind, _) in enumerate(panels):
+        y1, y2, z1 = idx(cf[1], 1), idx(cl[-1, 1], 1), idx(cf[2], 2)
+        panels = [(A[:, y1, :], ext_cor, "coronal y=%.0f (dome centre)" % (o[1] + y1 * sp[1]), "cor", o[1] + y1 * sp[1]),
+                  (A[:, y2, :], ext_cor, "coronal y=%.0f (pylorus)" % (o[1] + y2 * sp[1]), "cor", o[1] + y2 * sp[1]),
+                  (A[z1], ext_ax, "axial z=%.0f (dome centre)" % (o[2] + z1 * sp[2]), "ax", o[2] + z1 * sp[2]),
+                  (A[:, max(0, y1 - int(90 / sp[1])):y1 + int(90 / sp[1])].min(axis=1), ext_cor,
+                   "coronal MinIP (gas), markers, greater curvature", "minip", None)]
+        for c, (img, ext, title, kind, level) in enumerate(panels):
             ax = axs[r, c]
             ax.imshow(img[::-1] if kind != "ax" else img, cmap="gray", vmin=-1000 if kind == "minip" else -250,
                       vmax=200 if kind == "minip" else 450, extent=ext, aspect="equal", interpolation="nearest")
-            if kind in ("cor", "minip"):
-                ax.plot(mk[:, 0], mk[:, 2], "o", ms=3, mfc="none", mec="y", mew=0.7)
+            if kind == "cor":
+                near = np.abs(mk[:, 1] - level) < 4.0
+                ax.plot(mk[near, 0], mk[near, 2], "o", ms=5, mfc="none", mec="y", mew=0.8)
+            elif kind == "ax":
+                near = np.abs(mk[:, 2] - level) < 4.0
+                ax.plot(mk[near, 0], mk[near, 1], "o", ms=5, mfc="none", mec="y", mew=0.8)
+                if truth["fluid_level_lps_y"] is not None:
+                    ax.axhline(truth["fluid_level_lps_y"], color="c", lw=0.5, ls=":")
+            else:
                 gc = np.array(truth["greater_curvature_lps"])
-                if kind == "minip":
-                    ax.plot(gc[:, 0], gc[:, 2], "-", color="r", lw=0.6)
-                    ax.plot(*np.array(truth["cardia_lps"])[[0, 2]], "c^", ms=5)
-                    ax.plot(*np.array(truth["pylorus_lps"])[[0, 2]], "m^", ms=5)
+                ax.plot(mk[:, 0], mk[:, 2], "o", ms=3, mfc="none", mec="y", mew=0.7)
+                ax.plot(gc[:, 0], gc[:, 2], "-", color="r", lw=0.7)
+                ax.plot(*np.array(truth["cardia_lps"])[[0, 2]], "c^", ms=6)
+                ax.plot(*np.array(truth["pylorus_lps"])[[0, 2]], "m^", ms=6)
             ax.set_title(title, fontsize=8)
             ax.tick_params(labelsize=6)
         d = truth["draw"]
-        axs[r, 0].set_ylabel("seed %d: %s, wall %.1f mm, %s%s\nspacing %s mm" % (
+        label = "seed %d: %s, wall %.1f mm, %s%s\nspacing %s mm" % (
             seed, truth["shape"], truth["wall_thickness_mm"], truth["lumen_kind"], ", rugae" if d["rugae"] else "",
-            "x".join("%.2f" % v for v in truth["spacing"])), fontsize=8)
-    fig.suptitle("Random stomachs (LPS; image left = patient's right; yellow: markers, red: greater curvature, "
-                 "cyan/magenta: cardia/pylorus)", fontsize=10)
+            "x".join("%.2f" % v for v in truth["spacing"]))
+        if kind_row == "hybrid":
+            label = "HYBRID in %s\n" % os.path.basename(item[0])[:28] + label
+        axs[r, 0].set_ylabel(label, fontsize=8)
+    fig.suptitle("Random stomachs (LPS mm; image left = patient's right, axial top = anterior; yellow: markers within "
+                 "4 mm of the slice / all in the MinIP; red: greater curvature; cyan/magenta: cardia/pylorus points; "
+                 "dotted: fluid level)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)

@@ -107,7 +107,8 @@ def test_cli_writes_the_output_contract(tmp_path):
                "--wall-thickness-mm", "4", "--quiet", "--landmarks", str(lm)])
     assert rc == 0
     for name in ("unfolded.nrrd", "report.json", "view.png", "model_rest.vtu", "model_unfolded.vtu",
-                 "incision.mrk.json", "centerline.mrk.json", "landmarks_unfolded.mrk.json"):
+                 "incision.mrk.json", "centerline.mrk.json", "landmarks_unfolded.mrk.json", "distortion.nrrd",
+                 "distortion.png"):
         assert (out / name).stat().st_size > 100, name
     assert not [n for n in os.listdir(out) if n.startswith(".unfold-")]
     vol = suio.read_volume(str(out / "unfolded.nrrd"))
