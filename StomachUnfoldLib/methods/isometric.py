@@ -29,7 +29,7 @@ from . import Method, Unfolding, register
 __all__ = ["IsometricFlattening", "arap", "triangle_frames", "cot_laplacian", "stretch_stats", "cut_along_path",
            "open_surface", "taubin_smooth", "IsoSurface", "MAX_MESH_VERTICES"]
 
-MAX_MESH_VERTICES = 40000
+MAX_MESH_VERTICES = 20000
 
 
 def _unique_rows(e: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
