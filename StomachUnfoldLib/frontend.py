@@ -42,6 +42,7 @@ class Prepared:
     crop_hi_ijk: np.ndarray
     params: UnfoldParameters
     mask_given: bool = False
+    fluid_voxels: int = 0           # lumen voxels of retained fluid under an air-fluid level (no gas there)
     air_info: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     seconds: dict = field(default_factory=dict)
@@ -50,6 +51,12 @@ class Prepared:
     def lumen_crop(self) -> Volume:
         """The lumen as a Volume on the crop's grid (geometry kept)."""
         return self.crop.with_array(self.lumen)
+
+    @property
+    def lumen_is_mask(self) -> bool:
+        """True when the lumen is not all gas (a stomach mask, or fluid under a level): its inner wall is then the
+        lumen mask's boundary, not the CT's air threshold, and the lumen's contents are shown as air."""
+        return bool(self.mask_given or self.fluid_voxels > 0)
 
     @property
     def pixel_mm(self) -> float:

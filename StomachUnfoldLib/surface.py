@@ -402,7 +402,7 @@ def cut_surface(prep, max_vertices: int = 20000, warnings: list | None = None) -
     warnings = [] if warnings is None else warnings
     crop, lumen, cl, inc = prep.crop, prep.lumen, prep.centerline, prep.incision
     # --- surface mesh, trimmed at the centreline's end planes ---------------------------------------------
-    v, f, mc_step = inner_surface(lumen, crop, max_vertices, prep.mask_given)
+    v, f, mc_step = inner_surface(lumen, crop, max_vertices, prep.lumen_is_mask)
     n_mc = len(v)
     P = np.asarray(cl.points_lps, float)
     # dense centreline (0.5 mm) with tangents and incision directions, for the cut angle of each vertex
@@ -535,7 +535,7 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None):
     bb = bary[covered]
     surf = np.einsum("nc,ncx->nx", bb, v[f[tt]])
     nrm = unit(np.einsum("nc,ncx->nx", bb, vn[f[tt]]))
-    prof = sample_profiles(crop, surf, nrm, depths, lumen if prep.mask_given else None)
+    prof = sample_profiles(crop, surf, nrm, depths, lumen if prep.lumen_is_mask else None)
     arr = np.full((nk, nj, ni), -1024.0, np.float32)
     jj, ii = np.nonzero(covered)
     arr[:, jj, ii] = prof.T

@@ -90,7 +90,7 @@ def _unroll(prep, prog, warnings, seconds):
     # --- rays: where they leave the lumen -----------------------------------------------------------------
     t = time.perf_counter()
     r_max = 2.5 * float(radius.max()) + 10.0
-    field, level = surface_field(crop, lumen, prep.mask_given)
+    field, level = surface_field(crop, lumen, prep.lumen_is_mask)
     origins = np.repeat(C, nj, axis=0)
     r_exit = ray_exits(field, level, crop, origins, D.reshape(-1, 3), r_max, 0.5 * float(crop.spacing.min()),
                         prog.sub("rays", 0.083, 0.417)).reshape(ni, nj)
@@ -108,7 +108,7 @@ def _unroll(prep, prog, warnings, seconds):
     depths, k0, nk = depth_axis(s, w)
     X = C[:, None, :] + np.nan_to_num(r_exit)[..., None] * D        # wall exit points (ni, nj, 3)
     prof = sample_profiles(crop, X.reshape(-1, 3), D.reshape(-1, 3), depths,
-                            lumen if prep.mask_given else None)
+                            lumen if prep.lumen_is_mask else None)
     prof[missing.reshape(-1)] = -1024.0
     arr = to_int16(prof.reshape(ni, nj, nk).transpose(2, 1, 0))     # (k, j, i)
     vol = Volume(arr, np.full(3, s), np.zeros(3), np.eye(3))

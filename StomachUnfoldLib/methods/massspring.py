@@ -65,7 +65,7 @@ class MassSpring(Method):
         with timed_stage(progress, "unfolded volume", seconds, *span["unfolded volume"]) as report:
             out_sp = float(params.output_spacing_mm or prep.pixel_mm)
             grid = make_grid(sim.positions, targets.frame, np.full(3, out_sp), margin_mm=2.0)
-            clear = prep.lumen if (prep.mask_given and params.clear_lumen) else None
+            clear = prep.lumen if (prep.lumen_is_mask and params.clear_lumen) else None
             unfolded, info_vol = build_unfolded_volume(crop, model.vertices, sim.positions, model.hexes, grid,
                                                        background=-1024.0, clear_mask=clear, progress=report)
         if info_vol.get("outside_ct_voxels", 0) > 0:
