@@ -44,8 +44,43 @@ def _wall(src: dict) -> float:
     return 3.0 if src.get("shape") == "thin_wall" else 4.0
 
 
+#: Random stomachs: the seeds the defaults were tuned on, and the held-out seeds never tuned on.
+TUNE_SEEDS = tuple(range(0, 30))
+HELD_OUT_SEEDS = tuple(range(1000, 1030))
+#: The methods compared on every random stomach, on the same volumes in one run.
+FAMILY_METHODS = ("isometric", "massspring", "cylindrical", "lscm")
+
+
+def _cached(source: dict, cache_dir: str | None):
+    """(CT, truth) of a random stomach or hybrid, from the cache folder when it is there, else drawn and cached."""
+    from StomachUnfoldLib.io import atomic_write_text, read_volume, write_volume
+
+    from .random_stomach import insert_into_ct, random_stomach
+
+    key = (f"random-{source['random']}-{source.get('size', 'small')}" if "random" in source
+           else f"hybrid-{source['hybrid']}-{os.path.basename(source['ct']).split('.')[0]}")
+    if cache_dir:
+        vol_path, json_path = os.path.join(cache_dir, key + ".nrrd"), os.path.join(cache_dir, key + ".json")
+        if os.path.exists(vol_path) and os.path.exists(json_path):
+            with open(json_path) as f:
+                return read_volume(vol_path), json.load(f)
+    if "random" in source:
+        ct, truth = random_stomach(int(source["random"]), source.get("size", "small"))
+    else:
+        ct, truth = insert_into_ct(read_volume(source["ct"]), int(source["hybrid"]))
+    if cache_dir:
+        os.makedirs(cache_dir, exist_ok=True)
+        write_volume(ct, vol_path)
+        atomic_write_text(json_path, json.dumps(truth, default=lambda o: o.tolist() if hasattr(o, "tolist") else o))
+    return ct, truth
+
+
 def _load(source: dict):
     """CT Volume, cardia/pylorus (LPS), optional mask and marker truth for a case's source."""
+    if "random" in source or "hybrid" in source:
+        ct, truth = _cached(source, source.get("_cache"))
+        markers = {m["id"]: m["lps"] for m in truth["markers"]}
+        return ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]), None, dict(markers, _truth=truth)
     if "real" in source:
         from StomachUnfoldLib.io import read_label_volume, read_volume
 
@@ -77,7 +112,7 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
     """Run one case (any method, through the one front end) and judge it; a documented failure becomes a row."""
     from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
 
-    from .markers import marker_metrics
+    from .markers import family_marker_metrics, marker_metrics
 
     row = {k: case[k] for k in ("name", "method", "group", "params")}
     row["source"] = {k: v for k, v in case["source"].items() if not k.startswith("_")}
@@ -86,11 +121,15 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
         ct, cardia, pylorus, mask, markers = _load(case["source"])
         row["load_seconds"] = time.perf_counter() - t
         row["size_ijk"] = list(ct.size)
-        params = {"wall_thickness_mm": _wall(case["source"]), **case["params"], "method": case["method"]}
+        family = markers.pop("_truth", None) if markers else None
+        wall = {} if family is not None else {"wall_thickness_mm": _wall(case["source"])}  # unseen: defaults
+        params = {**wall, **case["params"], "method": case["method"]}
         res = unfold(ct, cardia, pylorus, UnfoldParameters(**params), mask=mask)
         rep = res.report
         q = dict(rep["quality"])
-        if markers:
+        if family is not None:
+            q["markers"] = family_marker_metrics(res, family)
+        elif markers:
             q["markers"] = marker_metrics(res, markers)
         sim = rep["method"].get("simulation", {})
         row.update(ok=True, seconds=rep["seconds"]["total"], stage_seconds=rep["seconds"], quality=q,
@@ -201,6 +240,29 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
                 cases.append(Case(name, src, {"grid_size": 2, "wall_thickness_mm": 4.0}, group="real"))
                 for m in ("cylindrical", "lscm"):  # the peers on the same CTs and labels
                     cases.append(Case(f"{name}/{m}", src, {}, method=m, group="real"))
+    if "stomachs" in parts:
+        cases += family_cases(quick, data_dir)
+    return cases
+
+
+def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None) -> list[dict]:
+    """Random stomachs (tuned-on and held-out seeds) and hybrids in the real CTs, every FAMILY_METHODS on each."""
+    cache = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "stomach-unfold", "phantoms")
+    groups = [("stomachs-tune", TUNE_SEEDS[:3] if quick else TUNE_SEEDS),
+              ("stomachs-held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS)]
+    cases = []
+    for group, seeds in groups:
+        for seed in seeds:
+            src = {"random": int(seed), "size": "small", "_cache": cache}
+            for m in FAMILY_METHODS:
+                cases.append(Case(f"stomach-{seed}/{m}", src, {}, method=m, group=group))
+    if data_dir and os.path.isdir(data_dir) and not quick:
+        for name in sorted(os.listdir(data_dir)):
+            if name.endswith(".nii.gz") and "seg" not in name and "DERIVED" not in name:
+                src = {"hybrid": 1000 + len(cases) % 7, "ct": os.path.join(data_dir, name), "_cache": cache}
+                for m in FAMILY_METHODS:
+                    cases.append(Case(f"hybrid-{name.split('_')[0]}/{m}", src, {}, method=m,
+                                      group="stomachs-hybrid"))
     return cases
 
 
@@ -494,7 +556,38 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
         ax.set_xlabel("seconds (dotted: read + one resampling pass)")
         ax.set_title("Full-size CT: where the time goes")
         _save(fig, out_dir, "full_size_stages.png", made)
+    _family_plot(ok, out_dir, made, plt)
     return made
+
+
+def _family_plot(ok: list[dict], out_dir: str, made: list[str], plt) -> None:
+    """stomachs.png: per method, seconds against pairwise marker distortion (left) and hidden mucosa (right)."""
+    fam = [r for r in ok if r["group"].startswith("stomachs") and "markers" in r["quality"]]
+    if not fam:
+        return
+    colour = {"isometric": "tab:blue", "massspring": "tab:orange", "cylindrical": "tab:green", "lscm": "tab:red"}
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
+    for m in FAMILY_METHODS:
+        rs = [r for r in fam if r["method"] == m]
+        if not rs:
+            continue
+        t = [r["seconds"] for r in rs]
+        d = [r["quality"]["markers"].get("pairwise_distance_distortion") or np.nan for r in rs]
+        h = [1 - r["quality"]["visible_fraction"] for r in rs]
+        axes[0].scatter(t, d, s=14, alpha=0.6, color=colour.get(m), label=m)
+        axes[1].scatter(t, h, s=14, alpha=0.6, color=colour.get(m), label=m)
+    b = [r["quality"]["markers"].get("flat_bound") for r in fam if r["quality"]["markers"].get("flat_bound")]
+    if b:
+        axes[0].axhline(float(np.median(b)), color="k", ls="--", lw=1, label="flat-layout bound (median)")
+    axes[0].set(xlabel="seconds per volume", ylabel="median pairwise marker distortion |log(view/geodesic)|",
+                yscale="log", title="distortion against speed, random stomachs")
+    axes[1].set(xlabel="seconds per volume", ylabel="hidden mucosa fraction", yscale="symlog",
+                title="hidden mucosa against speed")
+    axes[1].set_yscale("symlog", linthresh=0.01)
+    for ax in axes:
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    _save(fig, out_dir, "stomachs.png", made)
 
 
 def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) -> str:
@@ -566,9 +659,104 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     table("crop", "Crop size: extra margin around the stomach (each run alone in a fresh process)")
     table("real", "Real CTs with their stomach labels (not gas-distended)")
     table("peers", "Peers on the same phantoms (the inverted column: wall folded back along the unrolling)")
+    L += family_markdown(rows)
     for png in made:
         L.append(f"![{png}]({png})\n")
     return "\n".join(L) + "\n"
+
+
+FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults were tuned on these)"),
+                 ("stomachs-held-out", "Random stomachs, seeds 1000-1029 (held out: never tuned on)"),
+                 ("stomachs-hybrid", "Drawn stomachs inserted into the real CTs (held out)"))
+
+
+def family_summary(rows: list[dict], group: str) -> dict:
+    """Per method over one family group: grades, visible fractions, markers, distortion against the bound, speed."""
+    out = {}
+    rs = [r for r in rows if r["group"] == group]
+    by_volume: dict = {}
+    for r in rs:
+        by_volume.setdefault(r["name"].split("/")[0], {})[r["method"]] = r
+    for m in FAMILY_METHODS:
+        mr = [r for r in rs if r["method"] == m]
+        ok = [r for r in mr if r.get("ok")]
+        if not mr:
+            continue
+        q = [r["quality"] for r in ok]
+        mk = [x["markers"] for x in q if "markers" in x]
+        vis = [x["visible_fraction"] for x in q]
+        dist = [x["pairwise_distance_distortion"] for x in mk if x.get("pairwise_distance_distortion") is not None]
+        ratio = [x["ratio_to_bound"] for x in mk if x.get("ratio_to_bound") is not None]
+        not_below_peers = 0
+        for vol in by_volume.values():
+            mine = vol.get(m)
+            if mine and mine.get("ok") and all(
+                    (not o.get("ok")) or mine["quality"]["visible_fraction"] >= o["quality"]["visible_fraction"]
+                    for n, o in vol.items() if n != m):
+                not_below_peers += 1
+        err = [x["length_error_mm"]["mean"] for x in mk if x.get("length_error_mm", {}).get("mean") is not None]
+        out[m] = {"volumes": len(mr), "failed": len(mr) - len(ok),
+                  "excellent": sum(x["grade"] == "excellent" for x in q),
+                  "good_or_better": sum(x["grade"] in ("excellent", "good") for x in q),
+                  "visible_median": float(np.median(vis)) if vis else None,
+                  "visible_min": float(np.min(vis)) if vis else None,
+                  "markers_seen": sum(x["seen"] for x in mk), "markers_total": sum(x["total"] for x in mk),
+                  "under_fluid_seen": sum(x["by_region"].get("under_fluid", [0, 0])[0] for x in mk),
+                  "under_fluid_total": sum(x["by_region"].get("under_fluid", [0, 0])[1] for x in mk),
+                  "dome_seen": sum(x["by_region"].get("dome", [0, 0])[0] for x in mk),
+                  "dome_total": sum(x["by_region"].get("dome", [0, 0])[1] for x in mk),
+                  "distortion_median": float(np.median(dist)) if dist else None,
+                  "distortion_max": float(np.max(dist)) if dist else None,
+                  "ratio_to_bound_median": float(np.median(ratio)) if ratio else None,
+                  "ratio_to_bound_max": float(np.max(ratio)) if ratio else None,
+                  "stretched_max": float(max(x["broken_springs_fraction"] for x in q)) if q else None,
+                  "inverted_max": float(max(x["inverted_fraction"] for x in q)) if q else None,
+                  "visible_not_below_every_peer": not_below_peers,
+                  "length_error_mm_mean": float(np.mean(err)) if err else None,
+                  "length_error_mm_sd_of_means": float(np.std(err)) if err else None,
+                  "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None}
+    return out
+
+
+def family_markdown(rows: list[dict]) -> list[str]:
+    """The random-stomach sections of results.md: one summary table per group, then every volume."""
+    L = []
+    for group, title in FAMILY_GROUPS:
+        summ = family_summary(rows, group)
+        if not summ:
+            continue
+        n = max(v["volumes"] for v in summ.values())
+        L.append(f"## {title}: {n} volumes, every method on the same volumes, default parameters\n")
+        L.append("| method | excellent | good or better | failed | visible median / min % | not below any peer | "
+                 "markers seen | under fluid | dome | pairwise distortion median / max | x flat-layout bound "
+                 "median / max | stretched max % | inverted max % | s median |")
+        L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+        def f(v, fmt="{:.3f}"):
+            return "" if v is None else fmt.format(v)
+        for m, v in summ.items():
+            L.append(f"| {m} | {v['excellent']}/{v['volumes']} | {v['good_or_better']}/{v['volumes']} | {v['failed']} | "
+                     f"{f(v['visible_median'] and 100 * v['visible_median'], '{:.1f}')} / "
+                     f"{f(v['visible_min'] and 100 * v['visible_min'], '{:.1f}')} | "
+                     f"{v['visible_not_below_every_peer']}/{v['volumes']} | "
+                     f"{v['markers_seen']}/{v['markers_total']} | {v['under_fluid_seen']}/{v['under_fluid_total']} | "
+                     f"{v['dome_seen']}/{v['dome_total']} | {f(v['distortion_median'])} / {f(v['distortion_max'])} | "
+                     f"{f(v['ratio_to_bound_median'], '{:.2f}')} / {f(v['ratio_to_bound_max'], '{:.2f}')} | "
+                     f"{f(v['stretched_max'] and 100 * v['stretched_max'], '{:.1f}')} | "
+                     f"{f(v['inverted_max'] and 100 * v['inverted_max'], '{:.2f}')} | {f(v['seconds_median'], '{:.1f}')} |")
+        L.append("")
+        L.append("<details><summary>every volume</summary>\n")
+        L.append("| volume / method | grade | visible % | parts | markers | distortion | bound | stretched % | s |")
+        L.append("|---|---|---|---|---|---|---|---|---|")
+        for r in [r for r in rows if r["group"] == group]:
+            if not r.get("ok"):
+                L.append(f"| {r['name']} | failed: {r.get('error', '')[:80]} | | | | | | | |")
+                continue
+            q, mk = r["quality"], r["quality"].get("markers", {})
+            L.append(f"| {r['name']} | {q['grade']} | {100 * q['visible_fraction']:.1f} | {q['failure_parts']} | "
+                     f"{mk.get('seen', '')}/{mk.get('total', '')} | {f(mk.get('pairwise_distance_distortion'))} | "
+                     f"{f(mk.get('flat_bound'))} | {100 * q['broken_springs_fraction']:.1f} | {r['seconds']:.1f} |")
+        L.append("\n</details>\n")
+    return L
 
 
 def _merge(old: dict, rows: list[dict], full: dict | None, meta: dict, parts) -> tuple[list[dict], dict | None, dict]:
@@ -594,7 +782,8 @@ def replot(out_dir: str = "docs/benchmark") -> list[str]:
 
 def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_size: bool = False,
                   scheduler: str | None = None, data_dir: str | None = None,
-                  parts=("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling"),
+                  parts=("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling",
+                         "stomachs"),
                   merge: bool = False) -> list[dict]:
     """Run the benchmark (all parts, or a quick subset) and write results.json, results.md and PNGs into out_dir.
 

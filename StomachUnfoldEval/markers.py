@@ -14,7 +14,7 @@ from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldLib.quality import mucosa_points
 from StomachUnfoldLib.view import first_hit
 
-__all__ = ["visible_markers", "marker_report", "marker_metrics"]
+__all__ = ["visible_markers", "marker_report", "marker_metrics", "family_marker_metrics"]
 
 
 def visible_markers(unfolded: Volume, marker_hu: float = 200.0, threshold_hu: float = -400.0,
@@ -124,3 +124,43 @@ def marker_metrics(result, marker_lps: dict) -> dict:
         out["pairwise_distance_ratio_median"] = float(np.median(ratio)) if len(ratio) else None
         out["pairwise_distance_distortion"] = float(np.median(np.abs(np.log(ratio)))) if len(ratio) else None
     return out
+
+
+def family_marker_metrics(result, truth: dict, pair_min_mm: float = 10.0, pair_max_mm: float = 80.0) -> dict:
+    """Markers of a drawn stomach (StomachUnfoldEval.random_stomach truth): seen per region, and the pairwise
+    distortion of the view against the true geodesics (cut along the greater curvature) and the flat-layout bound.
+
+    Distances are mm; the distortion is the median over marker pairs with a true geodesic of 10-80 mm of
+    |log(view distance / geodesic)|, as ``flat_bound`` defines it. ``length_error_mm`` is view minus true distance
+    over pairs 10-30 mm apart (a lesion-sized measurement), mean and standard deviation.
+    """
+    from .flat_bound import flat_layout_bound, pairwise_distortion
+
+    vol = result.unfolded
+    ids = [m["id"] for m in truth["markers"]]
+    mapped = result.map_landmarks({m["id"]: m["lps"] for m in truth["markers"]})
+    rep = marker_report(vol, mapped)
+    G = np.array(truth["geodesic_cut_mm"], float)
+    xy = np.array([vol.lps_to_index(np.asarray(mapped[k], float)[None])[0][:2] * vol.spacing[:2] for k in ids])
+    view = pairwise_distortion(xy, G, pair_min_mm, pair_max_mm)
+    bound = flat_layout_bound(G, pair_min_mm, pair_max_mm)
+    by_region: dict = {}
+    for m in truth["markers"]:
+        key = "under_fluid" if m.get("under_fluid") else m.get("region", "other")
+        seen = bool(rep["markers"][m["id"]]["seen"])
+        r = by_region.setdefault(key, [0, 0])
+        r[0] += seen
+        r[1] += 1
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+    iu = np.triu_indices(len(ids), 1)
+    g, v = G[iu], d[iu]
+    lesion = np.isfinite(g) & np.isfinite(v) & (g >= 10.0) & (g <= 30.0)
+    err = v[lesion] - g[lesion]
+    med = view.get("median_relative_error")
+    b = bound.get("median_relative_error")
+    return {"seen": rep["n_seen"], "total": rep["n_total"], "by_region": by_region,
+            "pairwise_distance_distortion": med, "flat_bound": b,
+            "ratio_to_bound": (med / b) if (med is not None and b) else None,
+            "pairs": view.get("n_pairs"),
+            "length_error_mm": {"mean": float(np.mean(err)) if len(err) else None,
+                                "sd": float(np.std(err)) if len(err) else None, "pairs": int(len(err))}}

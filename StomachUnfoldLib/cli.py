@@ -113,13 +113,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--markers", type=int, default=12)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--flip", action="store_true", help="flipped direction matrix (det = -1)")
+    p.add_argument("--random", type=int, default=None, metavar="SEED",
+                   help="draw a stomach at random from the anatomical family (fundus dome, side openings, incisure, "
+                        "narrow antrum, rugae, fluid, neighbouring gas); --size tiny, small or full; other shape "
+                        "options are ignored")
 
     b = sub.add_parser("bench", help="run the benchmark and write tables and PNGs")
     b.add_argument("--output-dir", "-o", default="docs/benchmark")
     b.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
     b.add_argument("--full-size", action="store_true", help="include the 512x512x400 phantom timing and scaling")
     b.add_argument("--scheduler", default=None, help="Dask scheduler address (default: a local cluster)")
-    b.add_argument("--parts", default="shapes,kappa,sweep,stability,resolution,peers,real,scaling",
+    b.add_argument("--parts", default="shapes,kappa,sweep,stability,resolution,peers,real,scaling,stomachs",
                    help="comma-separated parts to run")
     b.add_argument("--data-dir", default=None, help="folder of the real CTs (default ../shared/data)")
     b.add_argument("--merge", action="store_true",
@@ -212,6 +216,13 @@ def _evaluation():
 def _cmd_phantom(args) -> int:
     _evaluation()
     from StomachUnfoldEval.phantom import write_phantom
+
+    if args.random is not None:
+        from StomachUnfoldEval.random_stomach import write_random_stomach
+
+        path, json_path = write_random_stomach(args.output, args.random, size=args.size)
+        print(f"random stomach {args.random} written to {path} (truth: {json_path})")
+        return 0
 
     spacing = None
     if args.spacing:

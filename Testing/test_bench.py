@@ -88,3 +88,34 @@ def test_merge_replaces_rows_by_name_and_keeps_the_rest():
     assert full == old["full_size"] and meta["date"] == "then"
     assert meta["merged"] == [{"date": "now", "parts": ["real"], "cases": 2, "wall_seconds": 1.0}]
     assert "rerun on now with --merge" in bench._markdown(rows, None, {**meta, "machine": {"cpus": 2, "platform": "x"}}, [])
+
+
+def test_family_cases_tune_and_held_out_seeds_every_method_on_each():
+    cases = bench.family_cases(quick=False, data_dir=None, cache_dir="/nonexistent")
+    groups = {c["group"] for c in cases}
+    assert groups == {"stomachs-tune", "stomachs-held-out"}
+    seeds = {c["source"]["random"] for c in cases}
+    assert seeds == set(bench.TUNE_SEEDS) | set(bench.HELD_OUT_SEEDS)
+    assert not set(bench.TUNE_SEEDS) & set(bench.HELD_OUT_SEEDS)
+    for seed in seeds:
+        assert {c["method"] for c in cases if c["source"]["random"] == seed} == set(bench.FAMILY_METHODS)
+
+
+def test_family_summary_counts_grades_peers_and_the_bound():
+    def row(vol, m, grade, vis, dist, bound, fluid=(1, 2)):
+        q = {"grade": grade, "visible_fraction": vis, "broken_springs_fraction": 0.0, "inverted_fraction": 0.0,
+             "failure_parts": 0,
+             "markers": {"seen": 3, "total": 4, "by_region": {"under_fluid": list(fluid), "dome": [1, 1]},
+                         "pairwise_distance_distortion": dist, "flat_bound": bound, "ratio_to_bound": dist / bound,
+                         "length_error_mm": {"mean": 0.5, "sd": 1.0, "pairs": 3}}}
+        return {"name": f"{vol}/{m}", "group": "stomachs-held-out", "method": m, "ok": True, "seconds": 2.0,
+                "quality": q}
+    rows = [row("a", "isometric", "excellent", 0.995, 0.05, 0.04), row("a", "lscm", "good", 0.99, 0.3, 0.04),
+            row("b", "isometric", "good", 0.97, 0.08, 0.04), row("b", "lscm", "good", 0.98, 0.4, 0.04)]
+    s = bench.family_summary(rows, "stomachs-held-out")
+    assert s["isometric"]["excellent"] == 1 and s["isometric"]["good_or_better"] == 2
+    assert s["isometric"]["visible_not_below_every_peer"] == 1 and s["lscm"]["visible_not_below_every_peer"] == 1
+    assert s["isometric"]["ratio_to_bound_max"] == pytest.approx(2.0)
+    assert s["lscm"]["under_fluid_seen"] == 2 and s["lscm"]["under_fluid_total"] == 4
+    text = "\n".join(bench.family_markdown(rows))
+    assert "held out: never tuned on" in text and "| isometric | 1/2 | 2/2 |" in text
