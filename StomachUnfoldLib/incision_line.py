@@ -109,7 +109,7 @@ def compute_incision_line(lumen: np.ndarray, volume: Volume, centerline, side: s
         The stomach lumen (air region or mask).
     centerline : Centerline
         Cardia-to-pylorus centreline with ``points_lps``, ``tangents`` and ``radius_mm``.
-    side : {"greater", "lesser", "anterior", "posterior"}
+    side : one of params.INCISION_SIDES
     """
     pts = np.asarray(centerline.points_lps, float)
     if len(pts) < 3:

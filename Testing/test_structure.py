@@ -95,35 +95,49 @@ def test_out_of_range_parameters_are_refused_by_name(name, value):
         UnfoldParameters(**{name: value}).validate()
 
 
-def _slicer_parameter_fields():
-    """{name: (annotation source, default source)} of the Slicer module's parameter node class, read from its AST."""
+def _slicer_parameter_node():
+    """The Slicer module's parameter node fields {name: (annotation, default)} and its PARAMETER_MAP, from its AST."""
     tree = ast.parse(open(os.path.join(REPO, "StomachUnfold", "StomachUnfold.py")).read())
+    fields, mapping = {}, {}
     for node in ast.walk(tree):
         if isinstance(node, ast.ClassDef) and any(
                 isinstance(d, ast.Name) and d.id == "parameterNodeWrapper" or
                 isinstance(d, ast.Attribute) and d.attr == "parameterNodeWrapper" for d in node.decorator_list):
-            return {n.target.id: (ast.unparse(n.annotation), ast.unparse(n.value) if n.value else None)
-                    for n in node.body if isinstance(n, ast.AnnAssign)}
-    return {}
+            fields = {n.target.id: (n.annotation, n.value) for n in node.body if isinstance(n, ast.AnnAssign)}
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "PARAMETER_MAP"
+                                                for t in node.targets):
+            mapping = ast.literal_eval(node.value)
+    return fields, mapping
 
 
 def test_slicer_parameter_node_agrees_with_the_one_definition():
-    fields = _slicer_parameter_fields()
-    assert fields, "no @parameterNodeWrapper class in StomachUnfold.py"
+    fields, mapping = _slicer_parameter_node()
+    assert fields and mapping, "no @parameterNodeWrapper class or PARAMETER_MAP in StomachUnfold.py"
     specs = {s.name: s for s in parameter_specs()}
-    shared = [n for n in fields if n in specs]
-    assert {"method", "incision", "kappa", "wall_thickness_mm"} <= set(shared)
-    for name in shared:
-        annotation, default = fields[name]
-        spec = specs[name]
+    assert set(mapping) <= set(fields) and set(mapping.values()) <= set(specs)
+    assert {"method", "incision", "kappa", "wall_thickness_mm"} <= set(mapping.values())
+    for node_name, lib_name in mapping.items():
+        annotation, default = fields[node_name]
+        spec = specs[lib_name]
+        text = ast.unparse(annotation)
         if spec.choices:
-            # the choices come from the one definition, not a second list
-            assert "Choice" in annotation and "[" not in annotation.split("Choice", 1)[1][:2], (name, annotation)
-        elif spec.kind in (int, float):
-            assert "WithinRange" in annotation, (name, annotation)
-        if default is not None and spec.default is not None and spec.kind in (int, float) and \
-                re.fullmatch(r"-?[0-9.e+-]+", default):
-            assert float(default) == pytest.approx(float(spec.default)), (name, default, spec.default)
+            # the choices come from the one definition (a name), not a second literal list
+            call = [n for n in ast.walk(annotation) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "Choice"]
+            assert call and isinstance(call[0].args[0], ast.Name), (node_name, text)
+            continue
+        if spec.kind in (int, float):
+            call = [n for n in ast.walk(annotation) if isinstance(n, ast.Call) and getattr(n.func, "id", "") ==
+                    "WithinRange"]
+            assert call, (node_name, text)
+            lo, hi = (ast.literal_eval(a) for a in call[0].args[:2])
+            value = ast.literal_eval(default)
+            if spec.default is None:
+                assert value == lo, (node_name, "an 'automatic' special value at the bottom of the range")
+            else:
+                assert value == pytest.approx(spec.default), (node_name, value, spec.default)
+                # the panel's range lies within the library's valid range
+                spec.check(lo if not (spec.lo_open and lo == spec.lo) else hi)
+                spec.check(hi)
 
 
 def test_methods_are_registered_once_and_share_one_contract():
