@@ -15,7 +15,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.sparse.csgraph import shortest_path
 
-__all__ = ["flat_layout_bound", "pairwise_distortion", "pair_indices"]
+__all__ = ["flat_layout_bound", "pair_indices", "pairwise_distortion"]
 
 
 def pair_indices(geodesic_mm, pair_min_mm: float = 10.0, pair_max_mm: float = 80.0):
@@ -76,6 +76,7 @@ def _polish(X, I, J, g):
     M = len(X)
 
     def fun(x):
+        """Sum of squared log distance ratios and its gradient."""
         Y = x.reshape(M, 2)
         v = Y[I] - Y[J]
         d = np.maximum(np.linalg.norm(v, axis=1), 1e-9)
@@ -102,7 +103,7 @@ def flat_layout_bound(geodesic_mm, pair_min_mm: float = 10.0, pair_max_mm: float
     G = 0.5 * (G + G.T)
     M = len(G)
     I, J = pair_indices(G, pair_min_mm, pair_max_mm)
-    out = {"n_pairs": int(len(I)), "pair_min_mm": float(pair_min_mm), "pair_max_mm": float(pair_max_mm),
+    out = {"n_pairs": len(I), "pair_min_mm": float(pair_min_mm), "pair_max_mm": float(pair_max_mm),
            "n_markers": int(M)}
     if len(I) == 0:
         out.update(median_relative_error=float("nan"), median_abs_relative_error=float("nan"),
@@ -130,13 +131,15 @@ def flat_layout_bound(geodesic_mm, pair_min_mm: float = 10.0, pair_max_mm: float
 
 def pairwise_distortion(view_xy, geodesic_mm, pair_min_mm: float = 10.0, pair_max_mm: float = 80.0,
                         bound: dict | float | None = None) -> dict:
-    """The same statistic for a method's view: markers' 2D positions (M,2 mm; NaN rows = not seen) against the
-    geodesics (M,M mm). With ``bound`` (a ``flat_layout_bound`` result or its median), also the ratio to it."""
+    """The same statistic for a method's view: marker 2D positions (M,2 mm, NaN = not seen) against geodesics (mm).
+
+    With ``bound`` (a ``flat_layout_bound`` result or its median), also ``ratio_to_bound``.
+    """
     X = np.asarray(view_xy, float)
     I, J = pair_indices(geodesic_mm, pair_min_mm, pair_max_mm)
     seen = np.all(np.isfinite(X[I]), 1) & np.all(np.isfinite(X[J]), 1)
     I, J = I[seen], J[seen]
-    out = {"n_pairs": int(len(I)), "pair_min_mm": float(pair_min_mm), "pair_max_mm": float(pair_max_mm)}
+    out = {"n_pairs": len(I), "pair_min_mm": float(pair_min_mm), "pair_max_mm": float(pair_max_mm)}
     if len(I) == 0:
         out.update(median_relative_error=float("nan"), median_abs_relative_error=float("nan"))
     else:

@@ -31,7 +31,6 @@ import time
 
 import numpy as np
 from scipy import sparse
-from scipy.interpolate import CubicSpline  # noqa: F401  (kept for callers that build their own core curves)
 from scipy.ndimage import gaussian_filter, map_coordinates, zoom
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
@@ -39,9 +38,23 @@ from scipy.spatial import cKDTree
 from StomachUnfoldLib.errors import InputError
 from StomachUnfoldLib.geometry import Volume, lps_to_ras
 
-__all__ = ["SIZES", "SHAPES", "HU", "LABELS", "random_stomach", "write_random_stomach", "insert_into_ct",
-           "draw_parameters", "StomachModel", "GridSDF", "implicit_surface_mesh", "ring_graph",
-           "surface_geodesics", "lps_array", "make_contact_sheet"]
+__all__ = [
+    "HU",
+    "LABELS",
+    "SHAPES",
+    "SIZES",
+    "GridSDF",
+    "StomachModel",
+    "draw_parameters",
+    "implicit_surface_mesh",
+    "insert_into_ct",
+    "lps_array",
+    "make_contact_sheet",
+    "random_stomach",
+    "ring_graph",
+    "surface_geodesics",
+    "write_random_stomach",
+]
 
 # (in-plane range, slice range) in mm per size: "tiny" and "small" are coarser than clinical for fast tests
 SIZES = {"tiny": ((1.7, 2.1), (2.0, 2.5)), "small": ((1.0, 1.4), (1.0, 2.5)), "full": ((0.6, 0.9), (0.6, 2.5))}
@@ -205,8 +218,10 @@ def draw_parameters(seed, size: str = "small", **overrides) -> dict:
 # the analytic stomach
 # ---------------------------------------------------------------------------------------------------------------
 class StomachModel:
-    """The analytic stomach of a parameter draw: lumen field ``f_r`` (mm, < 0 in the lumen), wall ``0 <= f_r``,
-    ``f < w``; core curve, greater-curvature line, cardia and pylorus openings, tubes (LPS mm)."""
+    """The analytic stomach of a parameter draw (LPS mm): lumen field ``f_r`` (< 0 inside), wall ``0 <= f_r, f < w``.
+
+    Also the core curve, greater-curvature line, cardia and pylorus openings and the oesophagus/duodenum tubes.
+    """
 
     def __init__(self, d: dict):
         self.d = d
@@ -688,6 +703,7 @@ def _pick_markers(model: StomachModel, V, n, rng, fluid_y, sep=12.0):
     chosen = []
 
     def take(mask, k):
+        """Add up to k spread-out candidates of ``mask`` (at least ``sep`` mm from those chosen)."""
         cand = np.nonzero(mask & ok)[0]
         for _ in range(k):
             if len(cand) == 0:
@@ -748,7 +764,7 @@ def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h
     lumen_ml = float(np.sum(F < 0) * h ** 3 / 1000.0)
     del F
     return {"markers_lps": ends, "geodesic": geo, "geodesic_cut": geo_cut, "fluid_y": fluid_y,
-            "mucosa_area_mm2": area, "lumen_volume_ml": lumen_ml, "n_mesh_vertices": int(len(Vc))}
+            "mucosa_area_mm2": area, "lumen_volume_ml": lumen_ml, "n_mesh_vertices": len(Vc)}
 
 
 def _marker_truth(model, pos, fluid_y, bead):
@@ -860,7 +876,10 @@ class _Surroundings:
         lab[spleen] = LABELS["spleen"]
         # lungs: above the diaphragm, which follows the fundus dome (lung_gap mm of tissue) and the liver dome
         gap = float(self.d["lung_gap_mm"])
-        left = inside & (((x - 85) / 70) ** 2 + ((y - 10) / 95) ** 2 < 1) & (z > self.lung_floor)
+        # the left lung base caps the upper dome; it comes lower behind the dome than in front of it
+        cf, ax_ = self.m.c_f, self.m.axes
+        floor = cf[2] + ax_[2] * (0.35 + 0.45 * np.clip((cf[1] - y) / ax_[1], 0, 1))
+        left = inside & (((x - 85) / 70) ** 2 + ((y - 10) / 95) ** 2 < 1) & (z > floor)
         right = inside & (((x + 85) / 70) ** 2 + ((y - 10) / 95) ** 2 < 1) & (z > self.liver_c[2] + 20)
         chest = left | right
         val[chest & (lab == LABELS["background"])] = HU["muscle"]
@@ -943,8 +962,7 @@ def _reorient(C, lo, sp_lps, perm, signs):
 
 
 def lps_array(vol: Volume):
-    """The array of a Volume with a signed-permutation direction, reordered to [z, y, x] with x, y, z increasing
-    (LPS), and its (origin LPS mm, spacing x/y/z mm)."""
+    """A signed-permutation Volume's array as [z, y, x] with x, y, z increasing (LPS); (array, origin mm, spacing mm)."""
     D = np.asarray(vol.direction)
     A = vol.array.transpose(2, 1, 0)              # [i, j, k]
     perm = [int(np.argmax(np.abs(D[:, a]))) for a in range(3)]
@@ -968,7 +986,7 @@ def lps_array(vol: Volume):
 # ---------------------------------------------------------------------------------------------------------------
 # the public generators
 # ---------------------------------------------------------------------------------------------------------------
-def random_stomach(seed, size: str = "small", labels: bool = False, geodesics: bool = True, **overrides):
+def random_stomach(seed, size: str = "small", labels: bool = False, **overrides):
     """Draw a stomach CT (int16 HU Volume, LPS) and its truth (LPS/RAS mm) from ``seed``; see the module docstring.
 
     ``labels=True`` also returns the uint8 label array (``LABELS``, same layout as the volume's array).
@@ -1088,8 +1106,10 @@ def write_random_stomach(path, seed, size: str = "small", **kw):
 
 
 def make_contact_sheet(path, seeds=(0, 1, 2, 3, 4, 5), size: str = "tiny", hybrids=()):
-    """Write a PNG contact sheet of drawn stomachs (coronal and axial slices, coronal minimum projection);
-    ``hybrids``: (CT path, seed) pairs pasted with ``insert_into_ct`` get a row each."""
+    """Write a PNG contact sheet of drawn stomachs: coronal/axial slices and a coronal minimum projection (HU).
+
+    ``hybrids``: (CT path, seed) pairs pasted with ``insert_into_ct`` get a row each.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1112,7 +1132,8 @@ def make_contact_sheet(path, seeds=(0, 1, 2, 3, 4, 5), size: str = "tiny", hybri
         mk = np.array([m["lps"] for m in truth["markers"]])
         cl = np.array(truth["centerline_lps"])
 
-        def idx(v, a):
+        def idx(v, a, A=A, o=o, sp=sp):
+            """Array index of LPS coordinate v (mm) along axis a, clipped."""
             return int(np.clip(round((v - o[a]) / sp[a]), 0, A.shape[2 - a] - 1))
 
         ext_cor = [o[0], o[0] + sp[0] * (A.shape[2] - 1), o[2], o[2] + sp[2] * (A.shape[0] - 1)]
@@ -1153,7 +1174,7 @@ def make_contact_sheet(path, seeds=(0, 1, 2, 3, 4, 5), size: str = "tiny", hybri
     fig.suptitle("Random stomachs (LPS mm; image left = patient's right, axial top = anterior; yellow: markers within "
                  "4 mm of the slice / all in the MinIP; red: greater curvature; cyan/magenta: cardia/pylorus points; "
                  "dotted: fluid level)", fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.25 / (3.6 * len(rows))))
     fig.savefig(path, dpi=80)
     plt.close(fig)
     return path
@@ -1182,7 +1203,7 @@ def _default_centre(ct: Volume, axes_mm):
     if not body.any():
         c = 0.5 * (ct.bounds_lps()[0] + ct.bounds_lps()[1])
         return c
-    kz, ky, kx = np.nonzero(body)
+    _, ky, kx = np.nonzero(body)
     bx0, bx1 = xx[kx].min(), xx[kx].max()
     by = float(np.mean(yy[ky]))
     # lungs: large gas components inside the body's outline that reach the top of the volume

@@ -9,10 +9,20 @@ from scipy import ndimage
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from StomachUnfoldEval.flat_bound import flat_layout_bound, pairwise_distortion  # noqa: E402
-from StomachUnfoldEval.random_stomach import (LABELS, SIZES, GridSDF, StomachModel, draw_parameters,  # noqa: E402
-                                              implicit_surface_mesh, insert_into_ct, random_stomach,
-                                              surface_geodesics, write_random_stomach)
+from StomachUnfoldEval.flat_bound import flat_layout_bound, pairwise_distortion
+from StomachUnfoldEval.random_stomach import (
+    LABELS,
+    SIZES,
+    GridSDF,
+    StomachModel,
+    draw_parameters,
+    implicit_surface_mesh,
+    insert_into_ct,
+    random_stomach,
+    surface_geodesics,
+    write_random_stomach,
+)
+from StomachUnfoldLib.errors import InputError
 
 DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "..", "shared", "data")
 SEED_A = 8    # J shape, retained fluid, rugae, i/j swapped and every axis flipped
@@ -78,13 +88,13 @@ def test_draw_ranges_over_seeds():
         assert 16 <= d["n_markers"] <= 24
         (a, b), (c, e) = SIZES["small"]
         assert a <= d["spacing_ijk_mm"][0] <= b and c <= d["spacing_ijk_mm"][2] <= e
-    for size, ((a, b), (c, e)) in SIZES.items():
+    for (a, b), (c, e) in SIZES.values():
         assert 0.6 <= a and e <= 2.5
     assert shapes == {"j", "steer_horn", "cascade"}
     assert 5 <= fluid <= 25 and 5 <= rugae <= 25 and 5 <= flipped <= 25
-    with pytest.raises(Exception):
+    with pytest.raises(InputError):
         draw_parameters(0, "huge")
-    with pytest.raises(Exception):
+    with pytest.raises(InputError):
         draw_parameters(0, "tiny", no_such_parameter=1)
 
 
@@ -264,7 +274,8 @@ def test_write_random_stomach(tmp_path):
 
     path, jp = write_random_stomach(tmp_path / "rs.nrrd", 3, "tiny")
     vol = read_volume(path)
-    truth = json.load(open(jp))
+    with open(jp) as f:
+        truth = json.load(f)
     assert list(vol.size) == truth["size_ijk"] and len(truth["markers"]) >= 16
     pts = read_markups_points(tmp_path / "rs.mrk.json")
     assert set(pts) >= {"cardia", "pylorus"}
