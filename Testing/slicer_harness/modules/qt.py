@@ -146,7 +146,15 @@ QtCore.QObject._pyside_connect = QtCore.QObject.connect
 QtCore.QObject._pyside_disconnect = QtCore.QObject.disconnect
 
 
+_delattr = QtCore.QObject.__mro__[-2].__delattr__
+
+
+def _pqDelattr(self, name):
+    _delattr(self, name)
+
+
 def _patch(cls):
+    cls.__delattr__ = _pqDelattr
     cls.__getattribute__ = _pqGetattribute
     cls.__setattr__ = _pqSetattr
     cls.connect = _pqConnect
