@@ -1,0 +1,173 @@
+"""The shaded view (view.py): no terraced "wood-grain" ripple on smooth mucosa, beads and rugae kept, no edge spikes.
+
+Synthetic unfolded volumes on a 1.2 mm grid (the phantoms' spacing): air (-1000 HU) above a smooth
+mucosa surface, wall (40 HU) below, voxelised either as a binary staircase (a voxel is wall when its
+centre is under the surface: the project's phantoms) or with partial volume and a scanner-like blur.
+"""
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from StomachUnfoldLib import view
+from StomachUnfoldLib.geometry import Volume
+
+SP = 1.2  # mm
+AIR, WALL, BEAD = -1000.0, 40.0, 400.0
+
+
+def voxelise(surface_mm, shape=(30, 64, 96), blur_vox=0.0, beads=(), bead_r_mm=1.5):
+    """int16 unfolded Volume (k, j, i) with wall under ``surface_mm(x, y)`` (mm along k), optional beads (x, y) on it."""
+    nk, nj, ni = shape
+    k, j, i = np.mgrid[0:nk, 0:nj, 0:ni].astype(float) * SP
+    s = surface_mm(i, j)
+    if blur_vox > 0:  # partial volume (exact for a plane) then the scanner's point spread
+        frac = np.clip((s - k) / SP + 0.5, 0.0, 1.0)
+        a = AIR + (WALL - AIR) * frac
+        a = ndimage.gaussian_filter(a, blur_vox, mode="nearest")
+    else:
+        a = np.where(k < s, WALL, AIR)
+    for bx, by in beads:
+        bz = surface_mm(np.array(bx), np.array(by))
+        a[(i - bx) ** 2 + (j - by) ** 2 + (k - bz) ** 2 <= bead_r_mm ** 2] = BEAD
+    return Volume(np.clip(np.rint(a), -1024, 3071).astype(np.int16), np.full(3, SP), np.zeros(3), np.eye(3))
+
+
+def tilted_plane(x, y):
+    """A plane rising 0.21 mm per mm along i and 0.07 along j (mm): about 15 terraces across the view."""
+    return 3.0 + 0.21 * x + 0.07 * y
+
+
+def cylinder_wall(x, y):
+    """The inside of a 60 mm radius tube lying along i (mm): the mucosa of a cylindrical unrolling's curved wall."""
+    r, yc, zc = 60.0, 38.0, 64.0
+    return zc - np.sqrt(np.maximum(r ** 2 - (y - yc) ** 2, 0.0))
+
+
+def ripple(vol, surface=None, **kw):
+    """Ripple (mm) of the view's height map (less the true surface, if given) over its smooth mucosa."""
+    h, hit = view.surface_height(vol, **kw)
+    k, hu = view.first_hit(vol)
+    mask = view.smooth_mucosa_mask(hit, hu, SP)
+    if surface is not None:
+        jj, ii = np.mgrid[0:h.shape[0], 0:h.shape[1]] * SP
+        h = h - surface(ii, jj)
+    return view.ripple_mm(h, mask, (SP, SP))
+
+
+OLD = dict(smooth_mm=0.0, height_sigma_mm=0.7 * SP, clean=False)  # the renderer before the fix
+
+# A visible ripple: shade = 0.25 + 0.75 (n . l) with |l_xy| = 0.49 changes by 0.37 x the slope; 2 % of the
+# shade (5 grey levels) is a slope of 0.055, i.e. RMS 0.035 mm at a 4 mm wavelength. Blurred data (a CT)
+# stay under that, before and after. A binary staircase has lost the sub-voxel position of the surface
+# (the terraces are in the data: 0.17 mm on the plane before), so there the fix must cut it to at most
+# 0.6 of before and under 0.06 mm, the most a 1.25-voxel blur gets back without flattening the beads.
+RIPPLE_MAX_MM = 0.035
+RIPPLE_MAX_BINARY_MM = 0.06
+
+
+@pytest.mark.parametrize("surface", [tilted_plane, cylinder_wall])
+@pytest.mark.parametrize("blur_vox", [0.0, 0.7])
+def test_no_terraces(surface, blur_vox):
+    vol = voxelise(surface, blur_vox=blur_vox)
+    after = ripple(vol, surface)
+    before = ripple(vol, surface, **OLD)
+    if blur_vox > 0:
+        assert after < RIPPLE_MAX_MM, (after, before)
+        assert after <= before + 0.005, (after, before)
+        assert view.staircase_smoothing_vox(vol) < 0.1  # a blurred CT is not smoothed further
+    else:
+        assert after < RIPPLE_MAX_BINARY_MM and after < 0.6 * before, (after, before)
+
+
+def test_binary_staircase_was_rippled():
+    """The measure sees the defect the fix removes: the old renderer on a binary staircase is well over the limit."""
+    assert ripple(voxelise(tilted_plane), tilted_plane, **OLD) > 3 * RIPPLE_MAX_MM
+
+
+def test_edge_sharpness_tells_staircase_from_blur():
+    assert view.edge_sharpness(voxelise(tilted_plane)) > 0.9
+    assert view.edge_sharpness(voxelise(tilted_plane, blur_vox=0.7)) < 0.55
+    assert view.staircase_smoothing_vox(voxelise(tilted_plane)) == pytest.approx(view.STAIRCASE_SMOOTH_VOX)
+
+
+@pytest.mark.parametrize("blur_vox,min_bump_mm", [(0.7, 0.75), (0.0, 0.3)])
+def test_bead_stays_visible(blur_vox, min_bump_mm):
+    """A 3 mm bead on the plane: yellow in the image and a bump (half its 1.5 mm height on a CT; on a binary
+    staircase, smoothed with the terraces, still over 0.3 mm, ten times the ripple left)."""
+    bx, by = 50.0, 38.0
+    vol = voxelise(tilted_plane, beads=[(bx, by)], blur_vox=blur_vox)
+    h, hit = view.surface_height(vol)
+    flat, _ = view.surface_height(voxelise(tilted_plane, blur_vox=blur_vox))
+    ib, jb = int(round(bx / SP)), int(round(by / SP))
+    bump = np.nanmax((h - flat)[jb - 2:jb + 3, ib - 2:ib + 3])
+    assert bump > min_bump_mm, bump
+    img = view.shade_first_hit(vol)[::-1]  # back to rows = j
+    r, g, b = img[jb, ib].astype(int)
+    assert r > 200 and g > 180 and b < 0.7 * g, img[jb, ib]  # yellow, not pink
+
+
+def test_rugae_kept():
+    """Rugae 2 mm high (peak to peak, 8 mm wavelength) on a CT: over 60 % of their height and as much as before."""
+    def rugae(x, y):
+        return tilted_plane(x, y) + 1.0 * np.sin(2 * np.pi * x / 8.0)
+
+    vol = voxelise(rugae, blur_vox=0.7)
+
+    def amplitude(**kw):
+        h, hit = view.surface_height(vol, **kw)
+        mask = view.smooth_mucosa_mask(hit, view.first_hit(vol)[1], SP)
+        x = np.arange(h.shape[1]) * SP
+        resid = h - tilted_plane(x[None, :], (np.arange(h.shape[0]) * SP)[:, None])
+        s = np.sin(2 * np.pi * x / 8.0)[None, :] * np.ones_like(h)
+        c = np.cos(2 * np.pi * x / 8.0)[None, :] * np.ones_like(h)
+        return np.hypot(2 * np.mean((resid * s)[mask]), 2 * np.mean((resid * c)[mask]))
+
+    after, before = amplitude(), amplitude(**OLD)
+    assert after > 0.6 and after > 0.97 * before, (after, before)
+
+
+def sheet_with_cut_face(spike_widths=(1, 2, 3)):
+    """A flat sheet (k 4 to 7) with a cut edge at i = 60 and, beyond it, lines of wall seen edge-on (spikes)."""
+    nk, nj, ni = 12, 60, 90
+    a = np.full((nk, nj, ni), AIR, np.float32)
+    a[4:8, :, :60] = WALL
+    i0 = 64
+    for w in spike_widths:  # columns of the cut face: thin strips hanging from the edge along j
+        a[4:8, 10:50, i0:i0 + w] = WALL
+        i0 += w + 6
+    a[5:7, 5:7, 85] = WALL  # an isolated speck
+    return Volume(np.rint(a).astype(np.int16), np.full(3, SP), np.zeros(3), np.eye(3))
+
+
+def test_no_spike_columns():
+    vol = sheet_with_cut_face()
+    k, _ = view.first_hit(vol)
+    hit = k >= 0
+    clean = view.clean_outline(hit)
+    assert hit[:, 60:].any()
+    assert not clean[:, 61:].any(), np.nonzero(clean[:, 61:])
+    assert clean[:, :60].all()  # the sheet itself loses nothing
+    img = view.shade_first_hit(vol)[::-1]
+    assert not img[:, 61:].any()
+    assert img[:, :60].min(axis=-1).max() > 0
+
+
+def test_outline_detail_kept():
+    """Cleaning keeps a jagged but real outline: a 6-pixel tab and one-pixel notches stay."""
+    hit = np.zeros((40, 40), bool)
+    hit[5:35, 5:30] = True
+    hit[15:21, 30:36] = True  # a tab 6 px wide
+    hit[5:35:4, 29] = False  # notches in the edge
+    clean = view.clean_outline(hit)
+    assert clean[15:21, 30:36].all()
+    assert (clean == hit).mean() > 0.995
+
+
+def test_ripple_measure_units():
+    """The ripple of a 0.1 mm sinusoid of 3 mm wavelength is its RMS, 0.071 mm; a plane has none."""
+    y, x = np.mgrid[0:80, 0:80] * 0.5
+    mask = np.zeros_like(x, bool)
+    mask[20:60, 20:60] = True
+    assert view.ripple_mm(0.3 * x + 0.1 * y, mask, (0.5, 0.5)) < 1e-3
+    r = view.ripple_mm(0.1 * np.sin(2 * np.pi * x / 3.0), mask, (0.5, 0.5))
+    assert abs(r - 0.1 / np.sqrt(2)) < 0.01, r
