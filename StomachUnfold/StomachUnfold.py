@@ -33,20 +33,13 @@ from slicer.ScriptedLoadableModule import (
 )
 from slicer.util import VTKObservationMixin
 
-try:
-    from StomachUnfoldLib.params import INCISION_SIDES, METHOD_NAMES
-except ImportError:
-    try:
-        from StomachUnfoldLib.methods import method_names
-        from StomachUnfoldLib.params import INCISION_SIDES
-        METHOD_NAMES = tuple(method_names())
-    except ImportError:  # the library is not installed yet: the Widget offers to install it on Unfold
-        INCISION_SIDES = ("greater", "lesser", "anterior", "posterior")  # TODO(lead): from StomachUnfoldLib.params
-        METHOD_NAMES = ("massspring", "paper", "cylindrical", "lscm")  # TODO(lead): from StomachUnfoldLib.params
-try:
-    from StomachUnfoldLib.params import DEFAULT_METHOD
-except ImportError:
-    DEFAULT_METHOD = METHOD_NAMES[0]
+try:  # the one definition of the choices is the library's
+    from StomachUnfoldLib.methods import method_names
+    from StomachUnfoldLib.params import DEFAULT_METHOD, INCISION_SIDES
+    METHOD_NAMES = tuple(method_names())
+except ImportError:  # not installed yet: Unfold offers to install it (then Slicer restarts with the real choices)
+    DEFAULT_METHOD = "massspring"
+    INCISION_SIDES, METHOD_NAMES = ("greater",), (DEFAULT_METHOD,)
 
 # TODO(lead): the project's public address once published; docs/slicer.md is the page this points at.
 DOCUMENTATION_URL = "https://github.com/StomachUnfold/StomachUnfold/blob/main/docs/slicer.md"
@@ -799,11 +792,15 @@ class StomachUnfoldWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 _("Stomach Unfold needs these Python packages: {packages}. Install them now?").format(
                     packages=", ".join(missing))):
             return False
+        hadLibrary = libraryAvailable()
         for req in missing:
             slicer.util.pip_install(req)
         import importlib
 
         importlib.invalidate_caches()
+        if not hadLibrary and libraryAvailable():
+            slicer.util.infoDisplay(_("StomachUnfoldLib is installed. Restart Slicer to use Stomach Unfold."))
+            return False
         return libraryAvailable() and not missingPackages()
 
     def _onProgress(self, stage, fraction):
