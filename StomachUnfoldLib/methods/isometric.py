@@ -121,7 +121,8 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     try:
         lu = splu(Lr, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError as e:
-        raise SimulationError(f"the ARAP system of the surface could not be factorised ({e}); the mesh is broken") from e
+        raise SimulationError(f"the ARAP system of the surface could not be factorised ({e}); the mesh is "
+                              "broken") from e
     col_pin = L[:, pin].toarray().ravel()[keep]
     uv = np.array(uv0, float)
     energies = []
@@ -130,6 +131,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     dxr = dx.reshape(-1, 2)
 
     def rotations(uv):
+        """Current half-edge vectors (3F,2 mm) and the rest edges turned by each triangle's closest rotation."""
         du = (uv[fb] - uv[fa])                                          # (3F,2) current half-edge vectors
         wd = wr[:, None] * du
         s00 = (wd[:, 0] * dxr[:, 0]).reshape(nf, 3).sum(1)
@@ -186,6 +188,7 @@ def untangle(uv: np.ndarray, f: np.ndarray, rounds: int = 20) -> tuple[np.ndarra
     on_b[ue[cnt == 1].ravel()] = True
 
     def flipped():
+        """Bool (F,): triangles whose orientation differs from the majority's."""
         sa = signed_area_2d(uv, f)
         major = np.sign(np.sum(np.sign(sa))) or 1.0
         return np.sign(sa) != major
@@ -237,7 +240,7 @@ def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1
 
 
 def stretch_stats(v: np.ndarray, f: np.ndarray, uv: np.ndarray) -> dict:
-    """Per-triangle singular values of the flat map's Jacobian: max / 95th percentile of the stretch (s1) and of 1/s2."""
+    """Flat-map Jacobian singular values per triangle: max and 95th percentile of the stretch s1, max of 1/s2."""
     x, area = triangle_frames(v, f)
     y = uv[f]
     ok = area > 1e-10
@@ -533,7 +536,7 @@ class IsometricFlattening(Method):
     stages = (("surface", 0.3), ("flat map", 0.3), ("volume", 0.4))
 
     def unfold(self, prep, progress) -> Unfolding:
-        """Cut the inner wall open along the incision, flatten it near-isometrically, sample the CT along the normals."""
+        """Cut the inner wall open along the incision, flatten it near-isometrically, sample the CT along normals."""
         warnings, seconds = [], {}
         with timed_stage(progress, "surface", seconds, 0.0, 0.3) as report:
             if prep.params.isometric_surface == "trimmed":
