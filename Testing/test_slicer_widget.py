@@ -444,3 +444,39 @@ def test_module_self_test_passes_over_the_real_base_classes(module):
     """What ``Slicer --testing`` runs: slicer.selfTests["StomachUnfold"] (sample data through SampleData)."""
     happ.newScene()
     slicer.selfTests["StomachUnfold"](msec=10)
+
+
+# ---------------------------------------------------------------- the stand-ins follow the real headers
+HEADERS = {  # Q_PROPERTY names and signals, from Slicer's and CTK's headers
+    "qMRMLNodeComboBox": (
+        {"currentNodeID", "currentNodeId", "nodeTypes", "showHidden", "showChildNodeTypes", "hideChildNodeTypes",
+         "baseName", "noneEnabled", "addEnabled", "removeEnabled", "editEnabled", "renameEnabled",
+         "interactionNodeSingletonTag", "selectNodeUponCreation", "noneDisplay", "sizeAdjustPolicy"},
+        {"currentNodeChanged", "currentNodeIDChanged", "nodeActivated", "nodeAdded", "nodeAddedByUser",
+         "nodeAddedByUserAction", "nodeAboutToBeRemoved", "currentNodeRenamed", "nodeAboutToBeEdited"}),
+    "qSlicerMarkupsPlaceWidget": (
+        {"buttonsVisible", "deleteAllControlPointsOptionVisible", "unsetLastControlPointOptionVisible",
+         "unsetAllControlPointsOptionVisible", "placeMultipleMarkups", "nodeColor", "defaultNodeColor",
+         "currentNodeActive", "placeModeEnabled", "placeModePersistency", "deleteAllMarkupsOptionVisible"},
+        {"activeMarkupsPlaceModeChanged", "activeMarkupsFiducialPlaceModeChanged", "mrmlSceneChanged"}),
+    "ctkCollapsibleButton": (
+        {"collapsed", "collapsedHeight", "contentsFrameShape", "contentsFrameShadow", "contentsLineWidth",
+         "contentsMidLineWidth", "buttonTextAlignment", "indicatorAlignment"},
+        {"contentsCollapsed"}),
+}
+
+
+@pytest.mark.parametrize("name", sorted(HEADERS))
+def test_stand_ins_have_the_properties_and_signals_of_the_real_headers(name):
+    """Each stand-in declares the header's Q_PROPERTYs and signals, and no signal or property the header lacks."""
+    cls = getattr(slicer, name, None) or getattr(H.ctk, name)
+    props, signals = HEADERS[name]
+    mo = cls.staticMetaObject
+    base = mo.superClass()
+    while base.className().startswith(("qMRML", "qSlicer", "ctk")):
+        base = base.superClass()
+    own = {mo.property(i).name() for i in range(base.propertyCount(), mo.propertyCount())}
+    ownSignals = {bytes(mo.method(i).name()).decode() for i in range(base.methodCount(), mo.methodCount())
+                  if mo.method(i).methodType() == qt.QMetaMethod.Signal}
+    assert props <= own and own <= props | {"isEntered"}, own ^ props
+    assert ownSignals == signals, ownSignals ^ signals

@@ -53,6 +53,7 @@ class qMRMLNodeComboBox(qt.QWidget):
     nodeActivated = Signal(object)
     nodeAdded = Signal(object)
     nodeAddedByUser = Signal(object)
+    nodeAddedByUserAction = Signal(object)
     nodeAboutToBeRemoved = Signal(object)
     nodeAboutToBeEdited = Signal(object)
     currentNodeRenamed = Signal(str)
@@ -73,6 +74,8 @@ class qMRMLNodeComboBox(qt.QWidget):
                        "removeEnabled": True, "editEnabled": False, "renameEnabled": False,
                        "selectNodeUponCreation": True}
         self._baseName = ""
+        self._attributes = []
+        self._typeLabels = {}
         self._noneDisplay = "None"
         self._interactionNodeSingletonTag = ""
         self.setEnabled(False)
@@ -107,10 +110,52 @@ class qMRMLNodeComboBox(qt.QWidget):
     interactionNodeSingletonTag = Property(str, lambda s: s._interactionNodeSingletonTag,
                                            lambda s, v: setattr(s, "_interactionNodeSingletonTag", v))
     currentNodeID = Property(str, lambda s: s._current.GetID() if s._current is not None else "",
-                             lambda s, v: s.setCurrentNodeID(v))
+                             lambda s, v: s.setCurrentNodeID(v), notify=currentNodeIDChanged)
+    currentNodeId = Property(str, lambda s: s._current.GetID() if s._current is not None else "",
+                             lambda s, v: s.setCurrentNodeID(v))  # deprecated in the header
+    sizeAdjustPolicy = Property(int, lambda s: int(s._combo.sizeAdjustPolicy().value),
+                                lambda s, v: s._combo.setSizeAdjustPolicy(qt.QComboBox.SizeAdjustPolicy(v)))
 
     def setNodeTypes(self, types):
         self._setNodeTypes(types)
+
+    def setHideChildNodeTypes(self, types):
+        self._hideChildNodeTypes = list(types)
+        self._refresh()
+
+    def setBaseName(self, name, nodeType=""):
+        self._baseName = name
+
+    def setNoneDisplay(self, text):
+        self._noneDisplay = text
+        self._refresh()
+
+    def setSelectNodeUponCreation(self, v):
+        self._setFlag("selectNodeUponCreation", v)
+
+    def setEditEnabled(self, v):
+        self._setFlag("editEnabled", v)
+
+    def setInteractionNodeSingletonTag(self, tag):
+        self._interactionNodeSingletonTag = tag
+
+    def addAttribute(self, nodeType, attributeName, attributeValue=None):
+        """Show only nodes of nodeType whose attribute matches (any value when attributeValue is None)."""
+        self._attributes.append((nodeType, attributeName, attributeValue))
+        self._refresh()
+
+    def removeAttribute(self, nodeType, attributeName):
+        self._attributes = [a for a in self._attributes if a[:2] != (nodeType, attributeName)]
+        self._refresh()
+
+    def setNodeTypeLabel(self, label, nodeType):
+        self._typeLabels[nodeType] = label
+
+    def nodeTypeLabel(self, nodeType):
+        return self._typeLabels.get(nodeType, "")
+
+    def nodes(self):
+        return list(self._nodes)
 
     def setNoneEnabled(self, v):
         self._setFlag("noneEnabled", v)
@@ -154,6 +199,10 @@ class qMRMLNodeComboBox(qt.QWidget):
             return False
         if any(node.IsA(t) for t in self._hideChildNodeTypes):
             return False
+        for nodeType, name, value in self._attributes:
+            if node.IsA(nodeType) and (node.GetAttribute(name) is None
+                                       or (value is not None and node.GetAttribute(name) != str(value))):
+                return False
         for t in self._nodeTypes:
             if node.IsA(t) and (self._flags["showChildNodeTypes"] or node.GetClassName() == t):
                 return True
@@ -167,7 +216,11 @@ class qMRMLNodeComboBox(qt.QWidget):
             nodes = [n for n in nodes if self._matches(n)]
         elif scene is not None:
             return
+        added = [n for n in nodes if not any(n is m for m in self._nodes)]
         self._nodes = nodes
+        for n in added:  # emitted for every node that enters the list (the header's nodeAdded/nodeAddedByUser)
+            self.nodeAdded.emit(n)
+            self.nodeAddedByUser.emit(n)
         self._combo.blockSignals(True)
         self._combo.clear()
         if self._flags["noneEnabled"]:
@@ -228,14 +281,30 @@ class qMRMLNodeComboBox(qt.QWidget):
 
     @Slot()
     def addNode(self, nodeType=None):
-        """Create a node of the first node type, as the combo box's "Create new" item does."""
-        if self._scene is None or not self._nodeTypes:
+        """Create a node of nodeType (one of nodeTypes; default the first), as the "Create new" item does."""
+        if self._scene is None or not self._nodeTypes or (nodeType and nodeType not in self._nodeTypes):
             return None
-        node = self._scene.AddNewNodeByClass(nodeType or self._nodeTypes[0], self._baseName or "")
-        self.nodeAddedByUser.emit(node)
+        nodeType = nodeType or self._nodeTypes[0]
+        node = self._scene.AddNewNodeByClass(nodeType, self._scene.GenerateUniqueName(self._baseName or
+                                                                                      nodeType[len("vtkMRML"):]))
+        for t, name, value in self._attributes:
+            if node.IsA(t):
+                node.SetAttribute(name, "" if value is None else str(value))
+        self.nodeAddedByUserAction.emit(node)
         if self._flags["selectNodeUponCreation"]:
             self.setCurrentNode(node)
         return node
+
+    @Slot()
+    def editCurrentNode(self):
+        if self._current is not None:
+            self.nodeAboutToBeEdited.emit(self._current)
+
+    @Slot()
+    def renameCurrentNode(self):
+        """Slicer asks for the name in a dialog; here the node keeps its name (no dialog offscreen)."""
+        if self._current is not None:
+            self.currentNodeRenamed.emit(self._current.GetName())
 
     @Slot()
     def removeCurrentNode(self):

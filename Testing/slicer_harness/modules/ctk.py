@@ -43,6 +43,11 @@ class ctkCollapsibleButton(qt.QAbstractButton):
     contentsLineWidth = Property(int, lambda s: s._lineWidth, lambda s, v: setattr(s, "_lineWidth", v))
     contentsMidLineWidth = Property(int, lambda s: s._midLineWidth, lambda s, v: setattr(s, "_midLineWidth", v))
 
+    contentsFrameShape = Property(object, lambda s: s._frameShape, lambda s, v: s.setContentsFrameShape(v))
+    contentsFrameShadow = Property(object, lambda s: s._frameShadow, lambda s, v: s.setContentsFrameShadow(v))
+    buttonTextAlignment = Property(object, lambda s: s._textAlignment, lambda s, v: s.setButtonTextAlignment(v))
+    indicatorAlignment = Property(object, lambda s: s._indicatorAlignment, lambda s, v: s.setIndicatorAlignment(v))
+
     def setCollapsedHeight(self, h):
         self._collapsedHeight = h
 
@@ -55,26 +60,14 @@ class ctkCollapsibleButton(qt.QAbstractButton):
     def setContentsFrameShape(self, shape):
         self._frameShape = shape
 
-    def contentsFrameShape(self):
-        return self._frameShape
-
     def setContentsFrameShadow(self, shadow):
         self._frameShadow = shadow
-
-    def contentsFrameShadow(self):
-        return self._frameShadow
 
     def setButtonTextAlignment(self, a):
         self._textAlignment = a
 
-    def buttonTextAlignment(self):
-        return self._textAlignment
-
     def setIndicatorAlignment(self, a):
         self._indicatorAlignment = a
-
-    def indicatorAlignment(self):
-        return self._indicatorAlignment
 
     @Slot(bool)
     def collapse(self, c):
