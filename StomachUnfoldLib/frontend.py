@@ -192,7 +192,7 @@ def _lumen(ct, cardia, pylorus, params, mask, report):
 
     if mask is None:
         return air_region(ct, cardia, pylorus, threshold_hu=params.air_threshold_hu,
-                          max_snap_mm=params.max_snap_mm, progress=report)
+                          max_snap_mm=params.max_snap_mm, progress=report, fluid_max_hu=params.fluid_max_hu)
     mask = np.asarray(mask, bool)
     if mask.shape != ct.array.shape:
         raise InputError(f"the stomach mask has shape {mask.shape}, the CT {ct.array.shape}: resample the "
@@ -253,4 +253,5 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     return Prepared(ct=ct, crop=crop, lumen=lumen_c, wall=wall, centerline=cl, incision=inc, cardia_lps=cardia,
                     pylorus_lps=pylorus, crop_lo_ijk=lo, crop_hi_ijk=hi, params=params, mask_given=mask is not None,
                     air_info={k: v for k, v in info_air.items() if k != "warnings"}, warnings=warnings,
+                    fluid_voxels=int(info_air.get("fluid_voxels", 0)),
                     seconds=seconds)

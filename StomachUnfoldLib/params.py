@@ -57,6 +57,8 @@ class FrontEndParameters(_Group):
     """The shared front end: air region or mask, crop, wall region, centreline, incision line (mm, HU)."""
 
     air_threshold_hu: float = _p(-500.0, "air threshold in HU", -1000.0, 0.0)
+    fluid_max_hu: float = _p(25.0, "retained water under a flat air-fluid level joins the lumen up to this HU "
+                             "(the wall is about 40 HU; -20 or less: never)", -1000.0, 100.0)
     wall_thickness_mm: float = _p(5.0, "stomach wall thickness in mm", 0.0, 30.0, lo_open=True)
     max_snap_mm: float = _p(20.0, "how far (mm) a point may lie from the lumen", 0.0, 200.0)
     centerline_step_mm: float = _p(2.0, "centreline point spacing in mm", 0.0, 20.0, lo_open=True)

@@ -2,7 +2,8 @@
 
 The air region is the set of voxels below an HU threshold 6-connected to the air next to the cardia and
 pylorus points; air outside the body (connected to the side faces of the volume) and air not reached from
-the points (lungs, colon) is left out. With a stomach label (``--mask``) the label replaces the threshold.
+the points (lungs, colon) is left out. Retained fluid lying under a flat horizontal air-fluid level on the
+dependent (posterior, LPS +y) wall joins the lumen (:func:`fluid_below_level`). With a stomach label (``--mask``) the label replaces the threshold.
 The wall region is the shell of tissue within a given thickness (mm) outside the lumen.
 
 All points are LPS mm; masks are bool arrays indexed ``[k, j, i]`` on the CT grid.
@@ -15,7 +16,7 @@ from scipy import ndimage
 from .errors import AnatomyError, InputError, PointError
 from .geometry import Volume, lps_to_ras
 
-__all__ = ["distance_mm", "snap_to_region", "air_region", "lumen_from_mask", "wall_region", "bounding_box",
+__all__ = ["distance_mm", "snap_to_region", "air_region", "fluid_below_level", "lumen_from_mask", "wall_region", "bounding_box",
            "MAX_STOMACH_ML"]
 
 #: Air regions larger than this (mL) are not a stomach (lungs, bowel, outside air).
@@ -301,13 +302,174 @@ def flood_fill(image: np.ndarray, seed) -> np.ndarray:
     return full
 
 
+# ---------------------------------------------------------------------------------------------- retained fluid
+#: Lower end (HU, after the light smoothing) of retained water under an air-fluid level; fat is about -90 HU.
+FLUID_MIN_HU = -20.0
+
+
+def _posterior_axis(volume: Volume) -> tuple[int, int]:
+    """(array axis 0=k 1=j 2=i, index step +1 or -1) of the grid axis closest to LPS +y, stepping posteriorly."""
+    a_ijk = int(np.argmax(np.abs(volume.direction[1, :])))
+    return 2 - a_ijk, (1 if volume.direction[1, a_ijk] > 0 else -1)
+
+
+def _shift(a: np.ndarray, axis: int, step: int, fill=0) -> np.ndarray:
+    """``out[v] = a[v + step]`` along ``axis`` (``fill`` where that lies outside the array)."""
+    out = np.full_like(a, fill)
+    n = a.shape[axis]
+    src, dst = [slice(None)] * a.ndim, [slice(None)] * a.ndim
+    if step > 0:
+        src[axis], dst[axis] = slice(step, n), slice(0, n - step)
+    else:
+        src[axis], dst[axis] = slice(0, n + step), slice(-step, n)
+    out[tuple(dst)] = a[tuple(src)]
+    return out
+
+
+def _level_patch(air: np.ndarray, ct: Volume, min_level_mm2: float):
+    """The flat bottom of the air (a horizontal air-fluid level, LPS y = const): bool mask of its voxels, or None.
+
+    The air's posterior boundary (air voxels with no air behind them in their column along the grid axis
+    closest to +y) is binned by its LPS y (mm, bins of one voxel step); a level is two adjacent bins holding
+    at least ``min_level_mm2`` (mm^2) and three times the boundary area of the two bins on either side (a
+    curved bottom spreads over many bins).
+    """
+    ax, st = _posterior_axis(ct)
+    a_ijk = 2 - ax
+    w = float(abs(ct.direction[1, a_ijk]) * ct.spacing[a_ijk])  # mm of y per posterior step
+    face_mm2 = float(np.prod(ct.spacing)) / w
+    acc = np.flip(np.logical_or.accumulate(np.flip(air, ax), axis=ax), ax) if st > 0 \
+        else np.logical_or.accumulate(air, axis=ax)  # air at this voxel or further posterior
+    bnd = air & ~_shift(acc, ax, st, fill=False)
+    del acc
+    kji = np.argwhere(bnd)
+    if len(kji) == 0:
+        return None
+    yb = (kji[:, ::-1] * ct.spacing) @ ct.direction[1, :]
+    rows = np.round((yb - yb.min()) / w).astype(np.int64)
+    hist = np.bincount(rows, minlength=int(rows.max()) + 4).astype(float) * face_mm2
+    win = hist[:-1] + hist[1:]
+    p = int(np.argmax(win))
+    around = max(win[p - 2] if p >= 2 else 0.0, win[p + 2] if p + 2 < len(win) else 0.0)
+    if win[p] < min_level_mm2 or win[p] < 3.0 * around:
+        return None
+    sel = kji[(rows == p) | (rows == p + 1)]
+    level = np.zeros(air.shape, bool)
+    level[tuple(sel.T)] = True
+    return level
+
+
+def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, threshold_hu: float = -500.0,
+                      min_level_mm2: float = 300.0, max_depth_mm: float = 120.0,
+                      max_air_ratio: float = 2.0) -> tuple[np.ndarray, dict]:
+    """Retained fluid (bool mask on ct's grid) under a flat horizontal air-fluid level (LPS y = const, mm) of ``air``.
+
+    A supine stomach's water lies on the posterior (LPS +y) wall under a flat level. The level is the air
+    region's flat posterior boundary (:func:`_level_patch`; none: no fluid, nothing changes). From each of its
+    voxels a ray is cast posteriorly along the grid axis closest to +y through the CT lightly smoothed
+    (Gaussian, one voxel or 1.5 mm if less): it crosses the partial-volume voxels of the first 3 mm (air and
+    water) and goes on while the HU stays in the water range [``FLUID_MIN_HU``, ``max_hu``] (HU; the wall is
+    about 40 HU, fat about -90 HU), stopping at the first voxel above ``max_hu``, at two in a row below the
+    range or after ``max_depth_mm``; each ray is clipped to two voxels beyond the 5 x 5 median of its
+    neighbours' depths (a ray through a thin wall is longer than those around it). Fluid is kept only if at
+    least half of the level has two or more water voxels under it (an air boundary lying flat on tissue has
+    none), and refused with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or
+    touching the side of the volume.
+
+    Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
+    of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level),
+    ``warnings`` (list of str).
+    """
+    air = np.asarray(air, bool)
+    shape = air.shape
+    info = {"fluid_voxels": 0, "fluid_ml": 0.0, "fluid_level_lps_y": None, "warnings": []}
+    none = np.zeros(shape, bool)
+    if not air.any() or max_hu <= FLUID_MIN_HU:
+        return none, info
+    lo, hi = bounding_box(air, (2, 2, 2))
+    box = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
+    level_b = _level_patch(air[box], ct, min_level_mm2)
+    if level_b is None:
+        return none, info
+    ax, st = _posterior_axis(ct)
+    a_ijk = 2 - ax
+    w = float(abs(ct.direction[1, a_ijk]) * ct.spacing[a_ijk])
+    n_d, n_partial, pad = int(np.ceil(max_depth_mm / w)), max(1, int(round(3.0 / w))), 3
+    lev = np.argwhere(level_b) + np.array([lo[2], lo[1], lo[0]])  # (k, j, i) on the CT grid
+    # the box the rays run through: the level's columns, from the level to max_depth_mm behind it
+    r_lo, r_hi = lev.min(0) - pad, lev.max(0) + 1 + pad
+    if st > 0:
+        r_hi[ax] = lev[:, ax].max() + 1 + n_d + pad
+    else:
+        r_lo[ax] = lev[:, ax].min() - n_d - pad
+    r_lo, r_hi = np.maximum(r_lo, 0), np.minimum(r_hi, shape)
+    rbox = tuple(slice(int(a), int(b)) for a, b in zip(r_lo, r_hi))
+    hu = ct.array[rbox]
+    # sub-voxel level: where the HU crosses threshold_hu between the last air voxel and the one behind it
+    rel = lev - r_lo
+    nxt = rel.copy()
+    nxt[:, ax] = np.clip(nxt[:, ax] + st, 0, hu.shape[ax] - 1)
+    h0 = hu[tuple(rel.T)].astype(float)
+    h1 = hu[tuple(nxt.T)].astype(float)
+    t = np.clip((threshold_hu - h0) / np.maximum(h1 - h0, 1e-3), 0.0, 1.0)
+    yl = ((lev[:, ::-1] * ct.spacing) @ ct.direction[1, :] + ct.origin[1]) + t * w
+    level_y = float(np.median(yl))
+    sm = ndimage.gaussian_filter(hu.astype(np.float32), np.minimum(1.0, 1.5 / ct.spacing[::-1]), mode="nearest")
+    fwd = np.moveaxis(sm, ax, -1)
+    if st < 0:
+        fwd = fwd[..., ::-1]
+    rel2 = np.delete(rel, ax, axis=1)
+    start = rel[:, ax] if st > 0 else (hu.shape[ax] - 1 - rel[:, ax])
+    offs = np.arange(1, n_d + 1)
+    pos = start[:, None] + offs[None, :]
+    inside = pos < fwd.shape[-1]
+    prof = fwd[rel2[:, 0:1], rel2[:, 1:2], np.minimum(pos, fwd.shape[-1] - 1)]
+    del sm, fwd
+    ok = inside & (prof <= max_hu) & ((prof >= FLUID_MIN_HU) | (offs[None, :] <= n_partial))
+    bad = ~ok
+    stop = (bad & np.concatenate([bad[:, 1:], np.ones((len(bad), 1), bool)], 1)) | (prof > max_hu) | ~inside
+    stop[:, -1] = True
+    run = np.argmax(stop, axis=1)  # voxels of fluid behind each level voxel
+    dmap = np.zeros([hu.shape[a] for a in range(3) if a != ax], np.int64)
+    dmap[rel2[:, 0], rel2[:, 1]] = run
+    run = np.minimum(run, ndimage.median_filter(dmap, size=5, mode="constant")[rel2[:, 0], rel2[:, 1]] + 2)
+    take = offs[None, :] <= run[:, None]
+    water = np.count_nonzero(take & ok & (offs[None, :] > n_partial), axis=1) >= 2
+    if float(np.mean(water)) < 0.5:
+        return none, info  # a flat air boundary on tissue, not on water
+    r, c = np.nonzero(take)
+    along = pos[r, c] if st > 0 else (hu.shape[ax] - 1 - pos[r, c])
+    vox = np.insert(rel2[r], ax, along, axis=1) + r_lo
+    fluid = np.zeros(shape, bool)
+    fluid[tuple(vox.T)] = True
+    fluid &= ~air
+    n = int(np.count_nonzero(fluid))
+    info["fluid_level_lps_y"] = level_y
+    ras = f"LPS y = {level_y:.1f} mm (RAS A = {-level_y:.1f} mm)"
+    n_air = int(np.count_nonzero(air))
+    problem = ""
+    if n > max_air_ratio * n_air:
+        problem = f"is {n / max(n_air, 1):.1f} times the air volume (over {max_air_ratio:g})"
+    elif _touches_faces(fluid, (0, 1, 2)):
+        problem = "reaches the side of the volume"
+    if problem:
+        info["warnings"].append(f"a flat air-fluid level was found at {ras} but the fluid-like voxels below it "
+                                f"{problem}: they leak into the body and were not added to the lumen (check "
+                                "the CT, or pass a stomach label with --mask)")
+        return none, info
+    info["fluid_voxels"] = n
+    info["fluid_ml"] = n * float(np.prod(ct.spacing)) / 1000.0
+    return fluid, info
+
+
 def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0, max_snap_mm: float = 20.0,
-               progress=None) -> tuple[np.ndarray, dict]:
-    """Stomach air region (bool mask on ct's grid): voxels below threshold_hu (HU) 6-connected to the points' air.
+               progress=None, fluid_max_hu: float = 25.0) -> tuple[np.ndarray, dict]:
+    """Stomach lumen (bool mask on ct's grid): air below threshold_hu (HU) 6-connected to the points' air, plus fluid.
 
     Each point (LPS mm) is snapped to the nearest air voxel within ``max_snap_mm``; the air component(s)
     reached are flood-filled with 6-connectivity. Lungs and colon gas are left out because they are not
-    connected to the seeds.
+    connected to the seeds. Retained fluid under a flat air-fluid level of that air (up to ``fluid_max_hu``
+    HU, :func:`fluid_below_level`) is added; without a level the mask is the air alone.
 
     Parameters
     ----------
@@ -320,13 +482,16 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     max_snap_mm : float
         How far (mm) from each point air is looked for.
     progress : Progress or callable(fraction), optional
+    fluid_max_hu : float
+        Upper HU of retained water under an air-fluid level (at most ``FLUID_MIN_HU``: no fluid is added).
 
     Returns
     -------
     mask : (K, J, I) bool array
     info : dict
         ``volume_ml`` (mL), ``n_components`` (1 or 2), ``seeds_lps`` (snapped points, LPS mm),
-        ``warnings`` (list of str).
+        ``warnings`` (list of str), ``fluid_voxels``, ``fluid_ml`` (mL) and ``fluid_level_lps_y`` (LPS y of
+        the air-fluid level, mm, or None); ``volume_ml`` is the air's.
 
     Raises
     ------
@@ -385,6 +550,14 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
                         "the stomach lumen (check the points, or pass a stomach label with --mask)")
     info = {"volume_ml": float(np.count_nonzero(region)) * voxel_ml, "n_components": n_comp,
             "seeds_lps": [seeds["cardia"].tolist(), seeds["pylorus"].tolist()], "warnings": warnings}
+    fluid, info_fluid = fluid_below_level(ct, region, max_hu=fluid_max_hu, threshold_hu=threshold_hu)
+    warnings += info_fluid.pop("warnings")
+    info.update(info_fluid)
+    if info["fluid_voxels"]:
+        region = region | fluid
+        warnings.append(f"retained fluid below an air-fluid level at LPS y = {info['fluid_level_lps_y']:.1f} mm "
+                        f"(RAS A = {-info['fluid_level_lps_y']:.1f} mm), {info['fluid_ml']:.0f} mL, was added to "
+                        "the lumen; its contents are shown as air and the wall is bounded by the lumen")
     if progress is not None:
         progress(1.0)
     return region, info

@@ -1,0 +1,123 @@
+"""Retained fluid under a flat air-fluid level joins the lumen (preprocessing.fluid_below_level, air_region).
+
+A synthetic stomach (an ellipsoidal lumen, a 5 mm wall at 50 HU, fat around) lies in a CT of several direction
+matrices; below a flat level (LPS y = const) its lumen holds water (10 HU), with scanner blur and noise.
+"""
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from StomachUnfoldLib.geometry import Volume
+from StomachUnfoldLib.preprocessing import air_region, fluid_below_level
+
+LEVEL_Y = 6.0                      # LPS y of the air-fluid level, mm (the fluid is posterior: y > LEVEL_Y)
+CARDIA = np.array([-30.0, -8.0, 0.0])
+PYLORUS = np.array([30.0, -8.0, 0.0])
+EXTENT = np.array([62.0, 40.0, 34.0])  # half-size of the CT in LPS x, y, z (mm)
+
+# name: (spacing of i, j, k in mm, direction: columns are the LPS unit vectors of i, j, k)
+GEOMETRIES = {
+    "identity": ((1.4, 1.4, 2.0), np.eye(3)),
+    "flipped": ((1.3, 1.3, 1.8), np.diag([-1.0, -1.0, 1.0])),
+    "y_on_k": ((1.5, 1.5, 2.0), np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])),
+}
+
+
+def make_ct(geometry="identity", contents="water", seed=0):
+    """(Volume in HU, true fluid mask, true lumen mask) of the synthetic stomach; contents below the level:
+    'water' (10 HU), 'gas' (none: all air), 'tissue' (50 HU: a flat air boundary on solid tissue), 'leak'
+    (water open to the posterior side of the volume)."""
+    sp, D = GEOMETRIES[geometry]
+    sp = np.asarray(sp, float)
+    lps_axis = np.argmax(np.abs(D), axis=0)                 # LPS axis of each of i, j, k
+    size = np.floor(2 * EXTENT[lps_axis] / sp).astype(int) + 1
+    origin = -D @ (sp * (size - 1) / 2.0)
+    vol = Volume(np.zeros(size[::-1], np.int16), sp, origin, D)
+    k, j, i = np.meshgrid(*[np.arange(n) for n in size[::-1]], indexing="ij")
+    P = vol.index_to_lps(np.stack([i.ravel(), j.ravel(), k.ravel()], 1))
+    x, y, z = P.T
+    r_in = np.sqrt((x / 42.0) ** 2 + (y / 22.0) ** 2 + (z / 20.0) ** 2)
+    r_out = np.sqrt((x / 47.0) ** 2 + (y / 27.0) ** 2 + (z / 25.0) ** 2)
+    lumen = r_in < 1.0
+    below = lumen & (y > LEVEL_Y)
+    hu = np.full(len(P), -90.0, np.float32)                   # fat
+    hu[r_out < 1.0] = 50.0                                    # wall
+    hu[lumen] = -1000.0
+    fluid = np.zeros(len(P), bool)
+    if contents in ("water", "leak"):
+        hu[below] = 10.0
+        fluid = below
+    if contents == "leak":                                    # a water-filled channel to the posterior side
+        ch = (np.hypot(x, z) < 9.0) & (y > LEVEL_Y)
+        hu[ch] = 10.0
+        fluid = fluid | ch
+    elif contents == "tissue":
+        hu[below] = 50.0
+        lumen = lumen & ~below
+    arr = hu.reshape(size[::-1])
+    arr = ndimage.gaussian_filter(arr, 0.7) + np.random.default_rng(seed).normal(0.0, 25.0, arr.shape)
+    shape = tuple(size[::-1])
+    return vol.with_array(np.round(arr).astype(np.int16)), fluid.reshape(shape), lumen.reshape(shape)
+
+
+def dice(a, b):
+    return 2.0 * np.count_nonzero(a & b) / max(1, np.count_nonzero(a) + np.count_nonzero(b))
+
+
+@pytest.mark.parametrize("geometry", list(GEOMETRIES))
+def test_fluid_below_a_flat_level_joins_the_lumen(geometry):
+    ct, fluid_true, lumen_true = make_ct(geometry)
+    lumen, info = air_region(ct, CARDIA, PYLORUS)
+    air, info_air = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    assert info_air["fluid_voxels"] == 0 and info_air["fluid_level_lps_y"] is None
+    fluid = lumen & ~air
+    assert dice(fluid, fluid_true) > 0.9
+    assert dice(lumen, lumen_true) > 0.95
+    w = float(np.abs(ct.direction[1]) @ ct.spacing)          # mm of LPS y per voxel along the posterior axis
+    assert abs(info["fluid_level_lps_y"] - LEVEL_Y) <= w
+    assert info["fluid_voxels"] == np.count_nonzero(fluid)
+    assert info["fluid_ml"] == pytest.approx(info["fluid_voxels"] * np.prod(ct.spacing) / 1000.0)
+    assert any("retained fluid below an air-fluid level" in m and "added to the lumen" in m for m in info["warnings"])
+    # the function alone gives the same fluid
+    f2, i2 = fluid_below_level(ct, air)
+    assert np.array_equal(f2, fluid) and i2["fluid_level_lps_y"] == info["fluid_level_lps_y"]
+
+
+def test_gas_only_stomach_is_unchanged():
+    ct, _, lumen_true = make_ct("flipped", "gas")
+    lumen, info = air_region(ct, CARDIA, PYLORUS)
+    air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    assert np.array_equal(lumen, air)
+    assert info["fluid_voxels"] == 0 and info["fluid_ml"] == 0.0 and info["fluid_level_lps_y"] is None
+    assert not any("fluid" in m for m in info["warnings"])
+    assert dice(lumen, lumen_true) > 0.95
+
+
+def test_flat_air_boundary_on_tissue_adds_nothing():
+    ct, _, lumen_true = make_ct("identity", "tissue")
+    lumen, info = air_region(ct, CARDIA, PYLORUS)
+    air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    assert np.array_equal(lumen, air)
+    assert info["fluid_voxels"] == 0
+    assert not any("fluid" in m for m in info["warnings"])
+
+
+def test_leaking_fluid_is_refused_with_a_warning():
+    ct, _, _ = make_ct("y_on_k", "leak")
+    lumen, info = air_region(ct, CARDIA, PYLORUS)
+    air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    assert np.array_equal(lumen, air)
+    assert info["fluid_voxels"] == 0 and info["fluid_level_lps_y"] is not None
+    assert any("leak into the body" in m and "not added to the lumen" in m for m in info["warnings"])
+
+
+def test_prepare_marks_a_lumen_with_fluid():
+    from StomachUnfoldLib.frontend import prepare
+    from StomachUnfoldLib.params import UnfoldParameters
+
+    ct, _, _ = make_ct("identity")
+    prep = prepare(ct, CARDIA, PYLORUS, UnfoldParameters())
+    assert prep.fluid_voxels > 0 and prep.lumen_is_mask
+    assert prep.air_info["fluid_level_lps_y"] == pytest.approx(LEVEL_Y, abs=1.5)
+    prep_off = prepare(ct, CARDIA, PYLORUS, UnfoldParameters(fluid_max_hu=-1000.0))
+    assert prep_off.fluid_voxels == 0 and not prep_off.lumen_is_mask
