@@ -95,13 +95,37 @@ def cot_laplacian(f: np.ndarray, w: np.ndarray, nv: int):
     return (L + diags(d)).tocsc()
 
 
-def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol: float = 1e-5, progress=None,
-         weight_clip: tuple = (1e-3, 1e3)) -> tuple[np.ndarray, dict]:
+def boundary_self_intersects(uv: np.ndarray, bedges: np.ndarray, batch: int = 2_000_000) -> bool:
+    """True when two boundary edges (B,2 vertex pairs) of a flat map (V,2 mm) cross: the map overlaps itself."""
+    if len(bedges) < 4:
+        return False
+    a, b = uv[bedges[:, 0]], uv[bedges[:, 1]]
+    n = len(bedges)
+    i, j = np.triu_indices(n, 1)
+    for lo in range(0, len(i), batch):
+        ii, jj = i[lo:lo + batch], j[lo:lo + batch]
+        share = ((bedges[ii, 0] == bedges[jj, 0]) | (bedges[ii, 0] == bedges[jj, 1])
+                 | (bedges[ii, 1] == bedges[jj, 0]) | (bedges[ii, 1] == bedges[jj, 1]))
+        p, r, q, s_ = a[ii], b[ii] - a[ii], a[jj], b[jj] - a[jj]
+
+        def cross(x, y):
+            return x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0]
+        d1, d2 = cross(r, q - p), cross(r, q + s_ - p)
+        d3, d4 = cross(s_, p - q), cross(s_, p + r - q)
+        hit = (d1 * d2 < 0) & (d3 * d4 < 0) & ~share
+        if hit.any():
+            return True
+    return False
+
+
+def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol: float = 1e-3, progress=None,
+         weight_clip: tuple = (1e-3, 1e3), injective: bool = True) -> tuple[np.ndarray, dict]:
     """ARAP flat map (V,2 mm) of a disc mesh (v LPS mm, f triangles) from the start map uv0; free boundary.
 
     Local/global iterations (Liu et al. 2008): per-triangle closest rotations of the current Jacobians, then one
     solve with the cotangent Laplacian (factorised once; one vertex pinned for translation). Stops when the
-    relative energy change is under ``tol``. Returns (uv, info with iterations, energy trace, flipped count).
+    relative energy change is under ``tol``, or (``injective``) before the first step whose free boundary crosses
+    itself. Returns (uv, info with iterations, energy trace, flipped count).
     """
     from scipy.sparse.linalg import splu
 
@@ -124,7 +148,17 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         raise SimulationError(f"the ARAP system of the surface could not be factorised ({e}); the mesh is "
                               "broken") from e
     col_pin = L[:, pin].toarray().ravel()[keep]
+    overlap_stop = 0
+    if injective:
+        ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        ue, cnt = _unique_rows(ee, return_counts=True)
+        bedges = ue[cnt == 1]
+    else:
+        bedges = None
     uv = np.array(uv0, float)
+    # the triangles' rest frames are counter-clockwise: a mirrored start map would have to turn inside out
+    if np.sum(signed_area_2d(uv, f)[good] > 0) < 0.5 * good.sum():
+        uv[:, 1] *= -1.0
     energies = []
     fa, fb = f[:, i1].ravel(), f[:, i2].ravel()                          # half-edge tails and heads (3F)
     wr = w.ravel()
@@ -155,6 +189,11 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         new[keep] = lu.solve(np.ascontiguousarray(rhs))
         if not np.all(np.isfinite(new)):
             raise SimulationError("the ARAP flat map diverged (non-finite coordinates); the surface mesh is broken")
+        if bedges is not None and boundary_self_intersects(new, bedges):
+            # the free boundary started to overlap itself (a strongly bent or tapering tube wraps round):
+            # keep the last map without overlap
+            overlap_stop = it
+            break
         uv = new
         progress(it / max_iter)
         if len(energies) >= 2 and abs(energies[-2] - energies[-1]) <= tol * max(energies[-1], 1e-12):
@@ -165,7 +204,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     major = np.sign(np.sum(np.sign(sa[good]))) or 1.0
     flipped = int(np.sum((np.sign(sa) != major) & good))
     total_w = float(np.sum(wr[:, None] * dxr ** 2))
-    return uv, {"arap_iterations": it, "arap_energy": e_final, "arap_energy_relative": e_final / max(total_w, 1e-12),
+    return uv, {"arap_iterations": it, "arap_stopped_before_overlap": overlap_stop, "arap_energy": e_final, "arap_energy_relative": e_final / max(total_w, 1e-12),
                 "arap_energy_trace": [float(e) for e in energies[:: max(1, len(energies) // 10)]],
                 "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum())}
 
