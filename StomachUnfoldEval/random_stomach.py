@@ -270,6 +270,9 @@ class StomachModel:
         x = np.clip((self.arc - s0) / max(s1 - s0, 1.0), 0, 1)
         self.radius = rp + (Rb - rp) * 0.5 * (1 + np.cos(np.pi * x))
         self.tree = cKDTree(self.core)
+        self.split = int(np.clip(np.searchsorted(self.arc, self.s_incisure), 2, len(self.core) - 3))
+        self.tree_a = cKDTree(self.core[:self.split + 1])
+        self.tree_b = cKDTree(self.core[self.split:])
         # greater-curvature directions: in the stomach's best plane, away from the concave side
         cen = self.core.mean(0)
         _, _, Vt = np.linalg.svd(self.core - cen)
@@ -320,9 +323,18 @@ class StomachModel:
     def fields(self, P, rugae: bool = True):
         """Exact fields at LPS points (N,3): dict f_r (lumen, mm), f (smooth, no rugae), idx (core), phi (rad)."""
         P = np.asarray(P, float)
-        dist, idx = self.tree.query(P, workers=-1)
+        # two pieces split at the incisure, each with its own closest point: across the incisure the closest
+        # core point may jump between the wide body and the narrow antrum, and dist - r with a single closest
+        # point would jump by their radius difference (a spurious surface); the union of the pieces does not
+        da, ia = self.tree_a.query(P, workers=-1)
+        db, ib = self.tree_b.query(P, workers=-1)
+        ib = ib + self.split
+        fa = da - self.radius[ia]
+        fb = db - self.radius[ib]
+        use_b = fb < fa
+        idx = np.where(use_b, ib, ia)
+        ft = np.where(use_b, fb, fa)
         v = P - self.core[idx]
-        ft = dist - self.radius[idx]
         fe = _ellipsoid_sdf(P, self.c_f, self.axes, self.R)
         f = _smin(ft, fe, self.k_union)
         phi = np.arctan2(np.sum(v * self.e2[idx], 1), np.sum(v * self.gdir[idx], 1))
@@ -333,36 +345,31 @@ class StomachModel:
             wphi = np.clip((np.cos(phi) + 0.15) / 1.15, 0, 1) ** 0.7
             wdom = np.clip((fe - ft) / 8.0 + 0.5, 0, 1)
             n = float(self.d["rugae_count"])
-            ridge = (0.5 - 0.5 * np.cos(n * phi + 1.2 * np.sin(s / 11.0))) ** 3
+            ridge = (0.5 - 0.5 * np.cos(n * phi + 1.2 * np.sin(s / 11.0))) ** 1.5
             fr = f + float(self.d["rugae_height_mm"]) * ws * wphi * wdom * ridge
         return {"f_r": fr, "f": f, "idx": idx, "phi": phi, "fe": fe, "ft": ft}
 
-    def _build_coarse(self, h=2.0, h0=6.0, band=8.0):
-        """Fields f_r and f on a 2 mm grid over the bounding box: exact near the surfaces, interpolated from a
-        6 mm grid elsewhere (where they are more than ``band`` mm from both)."""
+    def _build_coarse(self, h=2.0):
+        """Exact fields f_r and f on a 2 mm grid over the bounding box (the base of ``fast`` and of the mesh)."""
         lo, hi = self.lo, self.hi
-        r = int(round(h0 / h))
-        n = np.ceil((hi - lo) / (h * r)).astype(int) * r + 1       # 2 mm nodes, a multiple of r intervals
+        n = np.ceil((hi - lo) / h).astype(int) + 1
         self.hi = lo + (n - 1) * h
-        axs0 = [lo[a] + h * r * np.arange((n[a] - 1) // r + 1) for a in range(3)]
-        Z, Y, X = np.meshgrid(axs0[2], axs0[1], axs0[0], indexing="ij")
-        F0 = self.fields(np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1))
-        out = []
-        for key in ("f_r", "f"):
-            A0 = F0[key].reshape(X.shape).astype(np.float32)
-            out.append(zoom(A0, [(r * (m - 1) + 1) / m for m in A0.shape], order=1, grid_mode=False,
-                            mode="nearest"))
-        Cr, Cf = out
-        near = np.nonzero(((np.abs(Cr) < band) | (np.abs(Cf - self.w) < band)).ravel())[0]
-        kk, jj, ii = np.unravel_index(near, Cr.shape)
-        F = self.fields(lo + h * np.stack([ii, jj, kk], 1))
-        Cr.ravel()[near] = F["f_r"]
-        Cf.ravel()[near] = F["f"]
+        axs = [lo[a] + h * np.arange(n[a]) for a in range(3)]
+        Cr = np.empty((n[2], n[1], n[0]), np.float32)
+        Cf = np.empty_like(Cr)
+        for k0 in range(0, n[2], 24):
+            Z, Y, X = np.meshgrid(axs[2][k0:k0 + 24], axs[1], axs[0], indexing="ij")
+            F = self.fields(np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1))
+            Cr[k0:k0 + 24] = F["f_r"].reshape(X.shape)
+            Cf[k0:k0 + 24] = F["f"].reshape(X.shape)
         self._coarse = (lo.copy(), h, Cr, Cf)
+        # interpolation error of the 2 mm grid: Lipschitz constant (about 1, more with rugae) x half a diagonal
+        self.band = 2.0 * h + (float(self.d["rugae_height_mm"]) if self.d["rugae"] else 0.0)
 
-    def fast(self, P, band: float = 4.0, outer: bool = True):
+    def fast(self, P, band: float | None = None, outer: bool = True):
         """(f_r, f) at LPS points (N,3): coarse-grid interpolation, exact where within ``band`` mm of a surface."""
         P = np.asarray(P, float)
+        band = self.band if band is None else band
         o, h, Cr, Cf = self._coarse
         fr = np.full(len(P), 1e3)
         f = np.full(len(P), 1e3)
@@ -666,7 +673,8 @@ def surface_geodesics(V, T, sources, sdf: GridSDF | None = None, removed=None, k
     if sdf is not None and polys:
         L, cur = _shorten(polys, sdf, keep_out=keep_out, return_paths=True)
         for (a, b), l, p in zip(pairs, L, cur):
-            if np.isfinite(l) and l <= out[a, b] * 1.02 + 1.0:
+            on_surface = np.max(np.abs(sdf.value(p))) < 0.5 * sdf.h
+            if np.isfinite(l) and l <= out[a, b] * 1.02 + 1.0 and on_surface:
                 out[a, b] = out[b, a] = l
                 paths[(a, b)] = p
     return (out, paths) if return_paths else out
@@ -734,7 +742,7 @@ def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h
     h = hc / f
     F = zoom(Cr, [(f * (n - 1) + 1) / n for n in Cr.shape], order=1, grid_mode=False, mode="nearest")
     assert all(a == f * (n - 1) + 1 for a, n in zip(F.shape, Cr.shape))
-    band = np.nonzero(np.abs(F.ravel()) < 1.5 * hc)[0]
+    band = np.nonzero(np.abs(F.ravel()) < model.band)[0]
     kk, jj, ii = np.unravel_index(band, F.shape)
     P = o + h * np.stack([ii, jj, kk], 1)
     F.ravel()[band] = model.fields(P)["f_r"]
@@ -759,12 +767,14 @@ def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h
                                 endpoints=ends, graph=G, pairs_only=redo)
     geo_cut = np.where(redo | redo.T, geo_cut, geo)
     geo = np.fmin(geo, geo_cut)            # a path that avoids the cut is a path on the closed surface too
+    off = [float(np.max(np.abs(model.fields(p)["f_r"]))) for p in paths.values()]
     area = float(np.sum(np.linalg.norm(np.cross(Vc[Tc[:, 1]] - Vc[Tc[:, 0]], Vc[Tc[:, 2]] - Vc[Tc[:, 0]]), axis=1))
                  / 2)
     lumen_ml = float(np.sum(F < 0) * h ** 3 / 1000.0)
     del F
     return {"markers_lps": ends, "geodesic": geo, "geodesic_cut": geo_cut, "fluid_y": fluid_y,
-            "mucosa_area_mm2": area, "lumen_volume_ml": lumen_ml, "n_mesh_vertices": len(Vc)}
+            "mucosa_area_mm2": area, "lumen_volume_ml": lumen_ml, "n_mesh_vertices": len(Vc),
+            "path_offset_mm": float(np.max(off)) if off else 0.0}
 
 
 def _marker_truth(model, pos, fluid_y, bead):
@@ -1071,6 +1081,7 @@ def _truth(model, d, G, sur, vol, bead, fluid_y):
             "lumen_volume_ml": G["lumen_volume_ml"], "mucosa_area_mm2": G["mucosa_area_mm2"],
             "markers": _marker_truth(model, G["markers_lps"], fluid_y, bead), "marker_radius_mm": bead,
             "geodesic_mm": _nan_list(G["geodesic"]), "geodesic_cut_mm": _nan_list(G["geodesic_cut"]),
+            "geodesic_path_max_offset_mm": G["path_offset_mm"],
             "hu": dict(HU, fluid=float(d["fluid_hu"])), "labels": dict(LABELS), "draw": d}
 
 
