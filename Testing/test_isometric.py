@@ -6,7 +6,8 @@ import pytest
 
 from StomachUnfoldEval.phantom import make_phantom
 from StomachUnfoldLib.errors import Cancelled
-from StomachUnfoldLib.methods.isometric import arap, cut_along_path, stretch_stats, untangle
+from StomachUnfoldLib.methods.isometric import (arap, boundary_self_intersects, cut_along_path, stretch_stats,
+                                                untangle)
 from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
 from StomachUnfoldLib.quality import mucosa_points
 from StomachUnfoldLib.surface import signed_area_2d
@@ -90,6 +91,27 @@ def test_arap_of_developable_patch_is_isometric():
     st = stretch_stats(v, f, uv)
     assert st["stretch_max"] < 1 + 1e-3 and st["shrink_max"] < 1 + 1e-3
     assert info["flipped_triangles"] == 0
+
+
+def test_arap_from_a_mirrored_start_is_not_turned_inside_out():
+    nu, nv, R = 10, 14, 15.0
+    a = np.linspace(0, np.pi, nv)
+    z = np.linspace(0, 20, nu)
+    A, Z = np.meshgrid(a, z)
+    v = np.stack([R * np.cos(A), R * np.sin(A), Z], -1).reshape(-1, 3)
+    f = _grid(nu, nv)
+    uv0 = np.stack([Z.ravel(), -(A * R).ravel()], 1)       # mirrored against the triangles' orientation
+    uv, info = arap(v, f, uv0, max_iter=100, tol=1e-12)
+    assert info["flipped_triangles"] == 0
+    assert stretch_stats(v, f, uv)["stretch_max"] < 1 + 1e-3
+
+
+def test_boundary_self_intersection():
+    sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    loop = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+    assert not boundary_self_intersects(sq, loop)
+    bow = np.array([[0, 0], [1, 1], [1, 0], [0, 1]], float)   # the same loop through a bow tie crosses itself
+    assert boundary_self_intersects(bow, loop)
 
 
 def test_untangle_fixes_a_fold():

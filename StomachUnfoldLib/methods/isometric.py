@@ -204,7 +204,8 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     major = np.sign(np.sum(np.sign(sa[good]))) or 1.0
     flipped = int(np.sum((np.sign(sa) != major) & good))
     total_w = float(np.sum(wr[:, None] * dxr ** 2))
-    return uv, {"arap_iterations": it, "arap_stopped_before_overlap": overlap_stop, "arap_energy": e_final, "arap_energy_relative": e_final / max(total_w, 1e-12),
+    return uv, {"arap_iterations": it, "arap_stopped_before_overlap": overlap_stop, "arap_energy": e_final,
+                "arap_energy_relative": e_final / max(total_w, 1e-12),
                 "arap_energy_trace": [float(e) for e in energies[:: max(1, len(energies) // 10)]],
                 "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum())}
 
