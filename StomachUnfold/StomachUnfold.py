@@ -353,14 +353,65 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
             inc = self._curveNode(result.incision_lps, f"{baseName}_incision", (1.0, 0.3, 0.2))
             cl = self._curveNode(result.centerline_lps, f"{baseName}_centerline", (0.2, 0.8, 1.0))
             model = self._modelNode(result, f"{baseName}_unfolded_wall")
+            distortion = self._distortionNode(result, f"{baseName}_distortion", vol)
         except Exception:
             added = [scene.GetNthNode(i) for i in range(scene.GetNumberOfNodes())]
             for node in reversed([n for n in added if n.GetID() not in before]):
                 scene.RemoveNode(node)
             raise
         self.results[vol.GetID()] = result
-        return {"volume": vol, "incision": inc, "centerline": cl, "model": model, "report": result.report,
-                "camera": self.viewerCamera(vol)}
+        return {"volume": vol, "incision": inc, "centerline": cl, "model": model, "distortion": distortion,
+                "report": result.report, "camera": self.viewerCamera(vol)}
+
+    def showDistortionLayer(self, sliceNode, unfoldedNode, distortionNode, opacity=0.5):
+        """Show the unfolded volume in one slice view, turned to its own (i, j) plane at the mucosa, with the
+        distortion map over it as the foreground layer (``opacity`` 0-1); returns the slice composite node."""
+        scene = self._scene()
+        composite = None
+        for i in range(scene.GetNumberOfNodesByClass("vtkMRMLSliceCompositeNode")):
+            node = scene.GetNthNodeByClass(i, "vtkMRMLSliceCompositeNode")
+            if node.GetLayoutName() == sliceNode.GetLayoutName():
+                composite = node
+                break
+        if composite is None:
+            raise ValueError(_("no slice view {name} to show the distortion map in").format(
+                name=sliceNode.GetLayoutName()))
+        composite.SetBackgroundVolumeID(unfoldedNode.GetID())
+        composite.SetForegroundVolumeID(distortionNode.GetID())
+        composite.SetForegroundOpacity(float(opacity))
+        sliceNode.RotateToVolumePlane(distortionNode)
+        bounds = [0.0] * 6
+        distortionNode.GetRASBounds(bounds)
+        centre = [(bounds[0] + bounds[1]) / 2, (bounds[2] + bounds[3]) / 2, (bounds[4] + bounds[5]) / 2]
+        sliceNode.JumpSliceByCentering(*centre)
+        return composite
+
+    def _distortionNode(self, result, name, unfoldedNode):
+        """Scalar volume of the view's area scale (view area / mucosa area; 1 = true) on the unfolded volume's (i, j)
+        grid, one slice at the mucosa: shown as a layer over the unfolded volume, it tells where lengths and areas
+        measured on the view can be trusted (the worst length scale is in the node attribute and distortion.nrrd)."""
+        from StomachUnfoldLib.geometry import Volume
+        from StomachUnfoldLib.view import first_hit
+
+        dmap = result.distortion()
+        u = result.unfolded
+        k, _ = first_hit(u)
+        k0 = float(np.median(k[k >= 0])) if (k >= 0).any() else 0.0
+        origin = u.index_to_lps(np.array([[0.0, 0.0, k0]]))[0]
+        area = np.where(dmap.covered, dmap.area_scale, 0.0).astype(np.float32)[None]
+        node = self.volumeNodeFromVolume(Volume(area, u.spacing, origin, u.direction), name)
+        node.SetAttribute("StomachUnfold.distortionOf", unfoldedNode.GetID())
+        node.SetAttribute("StomachUnfold.trustedFraction", f"{dmap.summary().get('trusted_fraction', 0.0):.4f}")
+        dn = node.GetDisplayNode()
+        if dn is not None:
+            scene = self._scene()
+            colour = scene.GetNodeByID("vtkMRMLColorTableNodeFileDivergingBlueRed.txt") or \
+                scene.GetNodeByID("vtkMRMLColorTableNodeRainbow")
+            if colour is not None:
+                dn.SetAndObserveColorNodeID(colour.GetID())
+            dn.AutoWindowLevelOff()
+            dn.SetWindowLevel(1.0, 1.0)  # area scale 0.5 (blue, shrunk) .. 1 (true) .. 1.5 (red, enlarged)
+        return node
 
     def _curveNode(self, points_lps, name, color):
         """A locked markups curve through points (LPS mm, shown in RAS)."""
@@ -843,7 +894,21 @@ class StomachUnfoldWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 seconds=r["seconds"]["total"], grade=q.get("grade", "?"),
                 visible=100 * q.get("visible_fraction", 0))
             StomachUnfoldLogic.applyCamera(cameraNode, out["camera"])
+            self._showDistortion(out)
             self._ensureFindingNodes()
+
+    def _showDistortion(self, out):
+        """Put the unfolded volume with its distortion map over it in the Yellow slice view (the CT stays in Red
+        and Green for the linked reading); says in the results how much of the view has lengths within 10 %."""
+        lm = slicer.app.layoutManager()
+        widget = lm.sliceWidget("Yellow") if lm is not None else None
+        if widget is None or out.get("distortion") is None:
+            return
+        self.logic.showDistortionLayer(widget.mrmlSliceNode(), out["volume"], out["distortion"])
+        trusted = float(out["distortion"].GetAttribute("StomachUnfold.trustedFraction") or 0.0)
+        self.ui.resultsLabel.text += " " + _(
+            "Lengths within 10 % over {trusted:.0f}% of the view (distortion map in the yellow view).").format(
+            trusted=100 * trusted)
 
 
 #

@@ -98,6 +98,30 @@ def test_unfold_makes_nodes_and_leaves_inputs_alone(env):
     assert out["incision"].IsA("vtkMRMLMarkupsCurveNode") and out["incision"].GetNumberOfControlPoints() > 10
     assert out["centerline"].GetNumberOfControlPoints() > 10
     assert out["model"].GetPolyData().GetNumberOfPoints() > 100
+    # the distortion map as a layer on the unfolded volume's grid: area scale, 1 where the view is true
+    d = out["distortion"]
+    area = slicer.util.arrayFromVolume(d)
+    dm = res.distortion()
+    assert area.shape == (1,) + res.unfolded.array.shape[1:]
+    assert np.allclose(area[0][dm.covered], dm.area_scale[dm.covered]) and (area[0][~dm.covered] == 0).all()
+    assert 0.5 < float(np.median(area[0][dm.covered])) < 2.0
+    assert d.GetAttribute("StomachUnfold.distortionOf") == v.GetID()
+    # shown as a layer over the unfolded volume in a slice view turned to the view's plane
+    scene = slicer.mrmlScene
+    sliceNode = scene.AddNewNodeByClass("vtkMRMLSliceNode")
+    sliceNode.SetLayoutName("Test")
+    composite = scene.AddNewNodeByClass("vtkMRMLSliceCompositeNode")
+    composite.SetLayoutName("Test")
+    try:
+        assert logic.showDistortionLayer(sliceNode, v, d) is composite
+        assert composite.GetBackgroundVolumeID() == v.GetID() and composite.GetForegroundVolumeID() == d.GetID()
+        assert composite.GetForegroundOpacity() == 0.5
+        normal = [sliceNode.GetSliceToRAS().GetElement(r, 2) for r in range(3)]
+        k_axis = res.unfolded.index_to_ras_matrix[:3, 2] / np.linalg.norm(res.unfolded.index_to_ras_matrix[:3, 2])
+        assert abs(abs(np.dot(normal, k_axis)) - 1.0) < 1e-6   # the slice plane is the view's (i, j) plane
+    finally:
+        scene.RemoveNode(composite)
+        scene.RemoveNode(sliceNode)
     assert out["report"]["quality"]["grade"] in ("excellent", "good")
     import json
 

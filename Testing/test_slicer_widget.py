@@ -418,6 +418,14 @@ def test_unfold_in_the_gui_then_linked_findings_both_ways(gui):
     assert p.outputVolume is not None and widget.ui.resultsLabel.text.split(";")[0].endswith(" s")
     assert resets and np.allclose(camera.GetFocalPoint(), widget.logic.viewerCamera(p.outputVolume)["focalPoint"])
     assert widget.ui.findingsCollapsibleButton.enabled
+    # the distortion map is shown as a layer over the unfolded volume in the yellow view; the CT stays in red
+    yellow = scene.GetSingletonNode("Yellow", "vtkMRMLSliceCompositeNode")
+    red = scene.GetSingletonNode("Red", "vtkMRMLSliceCompositeNode")
+    assert yellow.GetBackgroundVolumeID() == p.outputVolume.GetID()
+    assert scene.GetNodeByID(yellow.GetForegroundVolumeID()).GetAttribute("StomachUnfold.distortionOf") == \
+        p.outputVolume.GetID()
+    assert red.GetBackgroundVolumeID() != p.outputVolume.GetID()
+    assert "within 10 %" in widget.ui.resultsLabel.text
     result = widget.logic.results[p.outputVolume.GetID()]
     from StomachUnfoldLib.geometry import lps_to_ras
 

@@ -211,6 +211,12 @@ def newScene():
         s.SetLayoutName(name)
         s.SetSingletonTag(name)
         scene.AddNode(s)
+        # each slice view has its composite node (background/foreground layers), as Slicer's layout makes them
+        c = scene.CreateNodeByClass("vtkMRMLSliceCompositeNode")
+        c.UnRegister(None)
+        c.SetLayoutName(name)
+        c.SetSingletonTag(name)
+        scene.AddNode(c)
     for key, logicName in (("volumerendering", "VolumeRendering"), ("cameras", "Cameras"), ("markups", "Markups"),
                            ("volumes", "Volumes"), ("colors", "Colors")):
         setattr(slicer.modules, key, _ModuleStub(logics[logicName]))
