@@ -1321,6 +1321,8 @@ def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, **ov
     vol = Volume(np.rint(arr).astype(dtype), ct.spacing.copy(), ct.origin.copy(), ct.direction.copy())
     truth = _truth(model, d, G, None, vol, bead, fluid_y)
     truth["kind"] = "hybrid"
+    truth["size"] = "hybrid"
+    truth["ct_spacing"] = [float(v) for v in ct.spacing]
     inside = vol.contains_lps(np.asarray(G["markers_lps"]))
     for m, ok in zip(truth["markers"], inside):
         m["in_volume"] = bool(ok)
