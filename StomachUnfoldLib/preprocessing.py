@@ -313,24 +313,10 @@ def _posterior_axis(volume: Volume) -> tuple[int, int]:
     return 2 - a_ijk, (1 if volume.direction[1, a_ijk] > 0 else -1)
 
 
-def _shift(a: np.ndarray, axis: int, step: int, fill=0) -> np.ndarray:
-    """``out[v] = a[v + step]`` along ``axis`` (``fill`` where that lies outside the array)."""
-    out = np.full_like(a, fill)
-    n = a.shape[axis]
-    src, dst = [slice(None)] * a.ndim, [slice(None)] * a.ndim
-    if step > 0:
-        src[axis], dst[axis] = slice(step, n), slice(0, n - step)
-    else:
-        src[axis], dst[axis] = slice(0, n + step), slice(-step, n)
-    out[tuple(dst)] = a[tuple(src)]
-    return out
-
-
 def _level_patch(air: np.ndarray, ct: Volume, min_level_mm2: float):
-    """The flat bottom of the air (a horizontal air-fluid level, LPS y = const): bool mask of its voxels, or None.
+    """The flat bottom of the air (a horizontal air-fluid level, LPS y = const): (N, 3) k, j, i of its voxels, or None.
 
-    The air's posterior boundary (air voxels with no air behind them in their column along the grid axis
-    closest to +y) is binned by its LPS y (mm, bins of one voxel step); a level is two adjacent bins holding
+    The air's posterior-most voxel of each column along the grid axis closest to +y is binned by its LPS y (mm, bins of one voxel step); a level is two adjacent bins holding
     at least ``min_level_mm2`` (mm^2) and three times the boundary area of the two bins on either side (a
     curved bottom spreads over many bins).
     """
@@ -338,13 +324,12 @@ def _level_patch(air: np.ndarray, ct: Volume, min_level_mm2: float):
     a_ijk = 2 - ax
     w = float(abs(ct.direction[1, a_ijk]) * ct.spacing[a_ijk])  # mm of y per posterior step
     face_mm2 = float(np.prod(ct.spacing)) / w
-    acc = np.flip(np.logical_or.accumulate(np.flip(air, ax), axis=ax), ax) if st > 0 \
-        else np.logical_or.accumulate(air, axis=ax)  # air at this voxel or further posterior
-    bnd = air & ~_shift(acc, ax, st, fill=False)
-    del acc
-    kji = np.argwhere(bnd)
-    if len(kji) == 0:
+    has = air.any(axis=ax)
+    last = air.shape[ax] - 1 - np.argmax(np.flip(air, ax), axis=ax) if st > 0 else np.argmax(air, axis=ax)
+    cols = np.argwhere(has)
+    if len(cols) == 0:
         return None
+    kji = np.insert(cols, ax, last[has], axis=1)
     yb = (kji[:, ::-1] * ct.spacing) @ ct.direction[1, :]
     rows = np.round((yb - yb.min()) / w).astype(np.int64)
     hist = np.bincount(rows, minlength=int(rows.max()) + 4).astype(float) * face_mm2
@@ -353,10 +338,7 @@ def _level_patch(air: np.ndarray, ct: Volume, min_level_mm2: float):
     around = max(win[p - 2] if p >= 2 else 0.0, win[p + 2] if p + 2 < len(win) else 0.0)
     if win[p] < min_level_mm2 or win[p] < 3.0 * around:
         return None
-    sel = kji[(rows == p) | (rows == p + 1)]
-    level = np.zeros(air.shape, bool)
-    level[tuple(sel.T)] = True
-    return level
+    return kji[(rows == p) | (rows == p + 1)]
 
 
 def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, threshold_hu: float = -500.0,
@@ -386,8 +368,10 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     none = np.zeros(shape, bool)
     if not air.any() or max_hu <= FLUID_MIN_HU:
         return none, info
-    lo, hi = bounding_box(air, (2, 2, 2))
-    box = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
+    ji = air.any(axis=0)  # the air's box, from one projection (the whole-volume reductions cost 3x more)
+    j_, i_ = np.flatnonzero(ji.any(axis=1)), np.flatnonzero(ji.any(axis=0))
+    k_ = np.flatnonzero(air[:, j_[0]:j_[-1] + 1, i_[0]:i_[-1] + 1].any(axis=(1, 2)))
+    box = (slice(k_[0], k_[-1] + 1), slice(j_[0], j_[-1] + 1), slice(i_[0], i_[-1] + 1))
     level_b = _level_patch(air[box], ct, min_level_mm2)
     if level_b is None:
         return none, info
@@ -395,7 +379,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     a_ijk = 2 - ax
     w = float(abs(ct.direction[1, a_ijk]) * ct.spacing[a_ijk])
     n_d, n_partial, pad = int(np.ceil(max_depth_mm / w)), max(1, int(round(3.0 / w))), 3
-    lev = np.argwhere(level_b) + np.array([lo[2], lo[1], lo[0]])  # (k, j, i) on the CT grid
+    lev = level_b + np.array([b.start for b in box])  # (k, j, i) on the CT grid
     # the box the rays run through: the level's columns, from the level to max_depth_mm behind it
     r_lo, r_hi = lev.min(0) - pad, lev.max(0) + 1 + pad
     if st > 0:
