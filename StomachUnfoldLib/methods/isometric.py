@@ -119,13 +119,14 @@ def boundary_self_intersects(uv: np.ndarray, bedges: np.ndarray, batch: int = 2_
 
 
 def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol: float = 1e-3, progress=None,
-         weight_clip: tuple = (1e-3, 1e3), injective: bool = True) -> tuple[np.ndarray, dict]:
+         weight_clip: tuple = (1e-3, 1e3), injective: bool = True, min_ok_iter: int = 5) -> tuple[np.ndarray, dict]:
     """ARAP flat map (V,2 mm) of a disc mesh (v LPS mm, f triangles) from the start map uv0; free boundary.
 
     Local/global iterations (Liu et al. 2008): per-triangle closest rotations of the current Jacobians, then one
     solve with the cotangent Laplacian (factorised once; one vertex pinned for translation). Stops when the
-    relative energy change is under ``tol``, or (``injective``) before the first step whose free boundary crosses
-    itself. Returns (uv, info with iterations, energy trace, flipped count).
+    relative energy change is under ``tol``. With ``injective``, a final map whose free boundary crosses itself is
+    replaced by the latest iterate without crossings if there is one from iteration ``min_ok_iter`` on.
+    Returns (uv, info with iterations, energy trace, flipped count).
     """
     from scipy.sparse.linalg import splu
 
@@ -159,6 +160,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     # the triangles' rest frames are counter-clockwise: a mirrored start map would have to turn inside out
     if np.sum(signed_area_2d(uv, f)[good] > 0) < 0.5 * good.sum():
         uv[:, 1] *= -1.0
+    last_ok = None                             # the latest iterate whose free boundary does not cross itself
     energies = []
     fa, fb = f[:, i1].ravel(), f[:, i2].ravel()                          # half-edge tails and heads (3F)
     wr = w.ravel()
@@ -189,15 +191,17 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         new[keep] = lu.solve(np.ascontiguousarray(rhs))
         if not np.all(np.isfinite(new)):
             raise SimulationError("the ARAP flat map diverged (non-finite coordinates); the surface mesh is broken")
-        if bedges is not None and boundary_self_intersects(new, bedges):
-            # the free boundary started to overlap itself (a strongly bent or tapering tube wraps round):
-            # keep the last map without overlap
-            overlap_stop = it
-            break
         uv = new
+        if bedges is not None and not boundary_self_intersects(uv, bedges):
+            last_ok = (it, uv.copy())
         progress(it / max_iter)
         if len(energies) >= 2 and abs(energies[-2] - energies[-1]) <= tol * max(energies[-1], 1e-12):
             break
+    if bedges is not None and last_ok is not None and last_ok[0] < it and last_ok[0] >= min_ok_iter \
+            and boundary_self_intersects(uv, bedges):
+        # the free boundary came to overlap itself (a strongly bent or tapering tube wraps round): keep the latest
+        # map without overlap if ARAP had got far enough there
+        overlap_stop, uv = last_ok
     du, rdx = rotations(uv)
     e_final = float(np.sum(wr[:, None] * (du - rdx) ** 2))
     sa = signed_area_2d(uv, f)
