@@ -7,7 +7,12 @@ volume, 0.7-pixel height blur, no spike removal; copied below) and after (``Stom
 Writes ``docs/images/view_before_after.png`` (before | after crops) and ``docs/images/view_before_after.md``
 (caption with the ripple, the smoothing applied and the visible fractions).
 
-    .venv/bin/python docs/make_view_figure.py [--out docs/images]
+    .venv/bin/python docs/make_view_figure.py [--out docs/images] [--vr]
+
+``--vr`` also renders the unfolded volumes offscreen with VTK's CPU ray caster (``VTK_DEFAULT_OPENGL_WINDOW=
+vtkEGLRenderWindow`` where there is no display), as Slicer's volume rendering shows them: the module's
+transfer function on the raw volume, and the recommended one on a copy smoothed by
+``view.staircase_smoothing_vox`` (``view_before_after_vr.png``, luminance ripple in the caption).
 """
 from __future__ import annotations
 
@@ -94,10 +99,116 @@ def crop_of(img: np.ndarray, method: str) -> np.ndarray:
     return img[int(0.15 * h):int(0.75 * h), int(0.2 * w):int(0.8 * w)]
 
 
+#: The module's transfer function now (StomachUnfold.setMucosaTransferFunctions, threshold -400 HU): HU -> opacity.
+TF_MODULE = [(-1024, 0.0), (-500, 0.0), (-250, 0.85), (300, 0.95), (3071, 1.0)]
+#: The recommended one: a wider ramp over the air/wall step, no gradient opacity (it shows the noise).
+TF_RECOMMENDED = [(-1024, 0.0), (-800, 0.0), (-300, 0.6), (-100, 0.95), (3071, 1.0)]
+TF_COLOR = [(-1024, 0.0, 0.0, 0.0), (-400, 0.75, 0.42, 0.38), (60, 0.93, 0.62, 0.58), (200, 0.98, 0.8, 0.6),
+            (400, 1.0, 0.95, 0.45), (3071, 1.0, 1.0, 0.8)]
+
+
+def volume_render(unfolded: Volume, opacity, sample_mm: float, size=(600, 450)) -> np.ndarray:
+    """RGB uint8 image (rows top to bottom) of the unfolded volume ray cast from the viewer's side (+k, parallel)."""
+    import vtkmodules.vtkRenderingOpenGL2  # noqa: F401
+    import vtkmodules.vtkRenderingVolumeOpenGL2  # noqa: F401
+    from vtkmodules.util import numpy_support as ns
+    from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPiecewiseFunction
+    from vtkmodules.vtkRenderingCore import (vtkColorTransferFunction, vtkRenderer, vtkRenderWindow, vtkVolume,
+                                             vtkVolumeProperty, vtkWindowToImageFilter)
+    from vtkmodules.vtkRenderingVolume import vtkFixedPointVolumeRayCastMapper
+
+    a = unfolded.array
+    img = vtkImageData()
+    img.SetDimensions(a.shape[2], a.shape[1], a.shape[0])
+    img.SetSpacing(*[float(v) for v in unfolded.spacing])
+    img.GetPointData().SetScalars(ns.numpy_to_vtk(np.ascontiguousarray(a, np.int16).ravel(), deep=True, array_type=4))
+    op, col, prop = vtkPiecewiseFunction(), vtkColorTransferFunction(), vtkVolumeProperty()
+    for x, y in opacity:
+        op.AddPoint(x, y)
+    for x, r, g, b in TF_COLOR:
+        col.AddRGBPoint(x, r, g, b)
+    prop.SetScalarOpacity(op)
+    prop.SetColor(col)
+    prop.ShadeOn()
+    prop.SetAmbient(0.3)
+    prop.SetDiffuse(0.7)
+    prop.SetSpecular(0.2)
+    prop.SetInterpolationTypeToLinear()
+    mapper = vtkFixedPointVolumeRayCastMapper()
+    mapper.SetInputData(img)
+    mapper.SetAutoAdjustSampleDistances(0)
+    mapper.SetSampleDistance(float(sample_mm))
+    vol = vtkVolume()
+    vol.SetMapper(mapper)
+    vol.SetProperty(prop)
+    ren = vtkRenderer()
+    ren.AddVolume(vol)
+    win = vtkRenderWindow()
+    win.SetOffScreenRendering(1)
+    win.AddRenderer(ren)
+    win.SetSize(*size)
+    b = vol.GetBounds()
+    c = [(b[0] + b[1]) / 2, (b[2] + b[3]) / 2, (b[4] + b[5]) / 2]
+    cam = ren.GetActiveCamera()
+    cam.SetFocalPoint(*c)
+    cam.SetPosition(c[0], c[1], c[2] + 500.0)
+    cam.SetViewUp(0, 1, 0)
+    cam.ParallelProjectionOn()
+    cam.SetParallelScale(1.02 * max(b[3] - b[2], (b[1] - b[0]) * size[1] / size[0]) / 2)
+    ren.ResetCameraClippingRange()
+    win.Render()
+    w2i = vtkWindowToImageFilter()
+    w2i.SetInput(win)
+    w2i.Update()
+    out = w2i.GetOutput()
+    w, h, _ = out.GetDimensions()
+    rgb = ns.vtk_to_numpy(out.GetPointData().GetScalars()).reshape(h, w, -1)[::-1, :, :3]
+    win.Finalize()
+    return np.ascontiguousarray(rgb)
+
+
+def luminance_ripple(rgb: np.ndarray, sigma_px: float = 3.0, edge_px: int = 12) -> float:
+    """RMS (grey levels, 0-255) of the luminance less its Gaussian low-pass over the rendered foreground."""
+    g = rgb.astype(float).mean(axis=-1)
+    fg = ndimage.binary_erosion(g > 20, iterations=edge_px)
+    low = ndimage.gaussian_filter(g, sigma_px)
+    return float(np.sqrt(np.mean((g - low)[fg] ** 2))) if fg.any() else float("nan")
+
+
+def vr_figure(rows, out_dir: str, plt) -> list[str]:
+    """Write view_before_after_vr.png (module TF on the raw volume | recommended TF on the smoothed copy); caption lines."""
+    fig, axes = plt.subplots(len(rows), 2, figsize=(11, 3.9 * len(rows)))
+    lines = ["", "*Volume rendering (VTK ray caster, `--vr`): left the module's transfer function on `unfolded.nrrd`,",
+             "right the recommended one on a copy smoothed by `view.staircase_smoothing_vox` voxels (none on blurred",
+             "data). Luminance ripple: RMS grey levels of the image less its 3-pixel low-pass over the sheet.*", "",
+             "| volume | method | module TF, raw | recommended TF, raw | recommended TF, smoothed copy |",
+             "|---|---|---|---|---|"]
+    for ax, r in zip(axes, rows):
+        u = r["unfolded"]
+        sv = view.staircase_smoothing_vox(u)
+        smooth = u.with_array(np.rint(ndimage.gaussian_filter(u.array.astype(np.float32), sv)).astype(np.int16)
+                              if sv > 0 else u.array)
+        before = volume_render(u, TF_MODULE, 1.0)
+        mid = volume_render(u, TF_RECOMMENDED, 0.3)
+        after = volume_render(smooth, TF_RECOMMENDED, 0.3)
+        lb, lm, la = luminance_ripple(before), luminance_ripple(mid), luminance_ripple(after)
+        ax[0].imshow(before)
+        ax[0].set_title(f"{r['label']}, {r['method']}: module TF (ripple {lb:.1f})", fontsize=9)
+        ax[1].imshow(after)
+        ax[1].set_title(f"recommended TF, smoothed {sv:.2f} vox (ripple {la:.1f})", fontsize=9)
+        for a in ax:
+            a.axis("off")
+        lines.append(f"| {r['label']} | {r['method']} | {lb:.1f} | {lm:.1f} | {la:.1f} |")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "view_before_after_vr.png"), dpi=80)
+    return lines
+
+
 def main(argv=None) -> int:
     """Write the before/after figure and its caption; returns the exit status."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "images"))
+    ap.add_argument("--vr", action="store_true", help="also the volume-rendering before/after (VTK, offscreen)")
     args = ap.parse_args(argv)
     import matplotlib
 
@@ -113,7 +224,7 @@ def main(argv=None) -> int:
             q = res.report.quality if hasattr(res.report, "quality") else res.report["quality"]
             rows.append(dict(label=label, method=method, before=crop_of(before, method), after=crop_of(after, method),
                              rb=rb, ra=ra, removed=removed, smooth=view.staircase_smoothing_vox(u),
-                             sharp=view.edge_sharpness(u), vf=q["visible_fraction"]))
+                             sharp=view.edge_sharpness(u), vf=q["visible_fraction"], unfolded=u))
     fig, axes = plt.subplots(len(rows), 2, figsize=(9, 3.3 * len(rows)))
     for ax, r in zip(axes, rows):
         for a, key, rip in ((ax[0], "before", r["rb"]), (ax[1], "after", r["ra"])):
@@ -133,6 +244,8 @@ def main(argv=None) -> int:
     for r in rows:
         lines.append(f"| {r['label']} | {r['method']} | {r['sharp']:.2f} | {r['smooth']:.2f} | {r['rb']:.3f} | "
                      f"{r['ra']:.3f} | {r['removed']:.2%} | {r['vf']:.4f} |")
+    if args.vr:
+        lines += vr_figure(rows, args.out, plt)
     with open(os.path.join(args.out, "view_before_after.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     print(png)
