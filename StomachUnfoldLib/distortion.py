@@ -65,8 +65,10 @@ class DistortionMap:
                 "length_scale_p95": float(np.percentile(self.length_scale[c], 95)), "trust_limit": TRUST_LIMIT}
 
 
-def distortion_map(unfolded: Volume, mesh) -> DistortionMap:
-    """Rasterise the Mesh's surface triangles' area and length scales onto the unfolded view's (j, i) pixels."""
+def distortion_map(unfolded: Volume, mesh, progress=None) -> DistortionMap:
+    """Rasterise the Mesh's surface triangles' area and length scales onto the unfolded view's (j, i) pixels.
+
+    ``progress`` (callable(fraction)) is called as the triangles are rasterised."""
     from .progress import Progress
     from .surface import rasterise
 
@@ -79,8 +81,11 @@ def distortion_map(unfolded: Volume, mesh) -> DistortionMap:
         return DistortionMap(area, length, covered)
     s1, s2, _, ok = triangle_stretch(mesh.rest_lps, mesh.unfolded_lps, tris)
     ijk = unfolded.lps_to_index(np.asarray(mesh.unfolded_lps, float))
+    if progress is not None:
+        progress(0.3)
     # pixel units: rasterise in a square grid of unit pixels, (i, j) of the view
-    tri, _, _ = rasterise(ijk[:, :2], tris[ok], (nj, ni), 1.0, Progress(None))
+    prog = Progress(None if progress is None else (lambda stage, fraction: progress(0.3 + 0.7 * fraction)))
+    tri, _, _ = rasterise(ijk[:, :2], tris[ok], (nj, ni), 1.0, prog, batch=500_000)
     hit = tri >= 0
     t = np.flatnonzero(ok)[tri[hit]]
     area[hit] = s1[t] * s2[t]

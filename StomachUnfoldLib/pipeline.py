@@ -90,12 +90,12 @@ class UnfoldResult:
             shutil.rmtree(tmp, ignore_errors=True)
         return names
 
-    def distortion(self):
-        """The view's DistortionMap (area and length scale per pixel), computed once."""
+    def distortion(self, progress=None):
+        """The view's DistortionMap (area and length scale per pixel), computed once (``progress(fraction)``)."""
         if self._distortion is None:
             from .distortion import distortion_map
 
-            self._distortion = distortion_map(self.unfolded, self.mesh)
+            self._distortion = distortion_map(self.unfolded, self.mesh, progress)
         return self._distortion
 
     def map_landmarks(self, points_lps: dict) -> dict:
@@ -154,9 +154,10 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     if params.quality:
         from .quality import quality_metrics
 
-        with timed_stage(prog, "quality", seconds, *span["quality"]):
+        with timed_stage(prog, "quality", seconds, *span["quality"]) as report:
             result.report.quality = quality_metrics(out.unfolded, out.correspondence, out.mesh, prep.lumen_crop,
-                                                    result.centerline_lps)
-            result.report.quality["distortion_map"] = result.distortion().summary()
+                                                    result.centerline_lps, progress=lambda f: report(0.9 * f))
+            dmap = result.distortion(progress=lambda f: report(0.9 + 0.1 * f))
+            result.report.quality["distortion_map"] = dmap.summary()
     seconds["total"] = time.perf_counter() - t_all
     return result

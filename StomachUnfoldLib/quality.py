@@ -137,22 +137,29 @@ def stretched_fraction(mesh, limit: float = 1.5) -> float:
 
 
 def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, centerline_lps,
-                    threshold_hu: float = -400.0) -> dict:
+                    threshold_hu: float = -400.0, progress=None) -> dict:
     """All automatic quality metrics and the grade of an unfolded Volume (HU), from any method's outputs.
 
     ``correspondence.to_unfolded`` maps CT LPS mm into the view; ``mesh`` is the method's Mesh; ``lumen_crop``
     the lumen on the CT crop and ``centerline_lps`` the centreline, from which the mucosa points are drawn.
+    ``progress`` (callable(fraction)) is called several times a second of work.
     """
+    report = progress or (lambda fraction: None)
     k_hit, _ = first_hit(vol, threshold_hu)
     seen = k_hit >= 0
     # visible fraction: mucosa points mapped into the view whose column's first hit is at their depth
     pts = mucosa_points(lumen_crop, centerline_lps)
-    mapped = correspondence.to_unfolded(pts) if len(pts) else np.zeros((0, 3))
+    report(0.05)
+    mapped = np.zeros((len(pts), 3))
+    for a in range(0, len(pts), 1000):
+        mapped[a:a + 1000] = correspondence.to_unfolded(pts[a:a + 1000])
+        report(0.05 + 0.55 * min(1.0, (a + 1000) / max(len(pts), 1)))
     ok = np.all(np.isfinite(mapped), axis=1)
     visible_fraction = float(visible_points(vol, mapped, k_hit).sum() / max(len(pts), 1))
     # overlapping: two layers on a ray; inverted cells of the model
     runs = layer_runs(vol, threshold_hu)
     over = ndimage.binary_opening(runs > 1, structure=np.ones((2, 2), bool))
+    report(0.7)
     # broken: over-stretched springs (edges longer than 1.5x) and holes inside the view's outline
     holes = ndimage.binary_fill_holes(seen) & ~seen
     # bending: distance of the mucosa from its best plane, normal deviation from +k
@@ -172,6 +179,7 @@ def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, cente
              np.ones_like(h)], -1) @ coef), 0)) > 10.0, structure=np.ones((3, 3), bool))
     else:
         plane_rms, tilt, bent = float("nan"), np.zeros(1), np.zeros_like(seen)
+    report(0.85)
     # failure parts: connected regions of overlap, holes and strongly bent mucosa (each > 25 mm^2)
     px = float(vol.spacing[0] * vol.spacing[1])
     fail = over | holes | bent

@@ -126,7 +126,7 @@ def rotation_minimising_frame(points: np.ndarray, tangents: np.ndarray, r0: np.n
 
 
 def ray_exits(field: np.ndarray, level: float, crop: Volume, origins: np.ndarray, dirs: np.ndarray, r_max: float,
-               step: float, prog: Progress, batch: int = 4_000_000) -> np.ndarray:
+               step: float, prog: Progress, batch: int = 1_000_000) -> np.ndarray:
     """Distance (mm) along each ray (origins (N,3), dirs (N,3)) to where the field first reaches ``level``; NaN if never."""
     t = np.arange(0.0, r_max + step, step)
     out = np.full(len(origins), np.nan)
@@ -370,6 +370,7 @@ def rasterise(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float
             np.add.at(hits, lin, 1)
             tri[lin] = t_ids[tt]
             bary[lin] = np.stack([l0[tt, kk], l1[tt, kk], l2[tt, kk]], 1)
+            prog((done + a + len(t_ids)) / len(f))
         done += len(ids)
         prog(done / len(f))
     return tri.reshape(nj, ni), bary.reshape(nj, ni, 3), hits.reshape(nj, ni)

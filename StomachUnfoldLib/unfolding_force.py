@@ -25,7 +25,7 @@ def _unit(v):
     return v / max(float(np.linalg.norm(v)), 1e-12)
 
 
-def wall_depth(points_lps, lumen: np.ndarray, volume, target_mm: float = 1.5) -> np.ndarray:
+def wall_depth(points_lps, lumen: np.ndarray, volume, target_mm: float = 1.5, progress=None) -> np.ndarray:
     """Signed depth (mm) of LPS points below the inner wall: distance to the lumen, negative inside it.
 
     Computed from Euclidean distance transforms on a grid coarsened to about ``target_mm`` voxels, then
@@ -38,6 +38,8 @@ def wall_depth(points_lps, lumen: np.ndarray, volume, target_mm: float = 1.5) ->
     sub = lumen[::f[2], ::f[1], ::f[0]]
     sp = volume.spacing * f
     outside = distance_mm(~sub, sp)
+    if progress is not None:
+        progress(0.5)
     inside = distance_mm(sub, sp)
     sd = (outside - inside).astype(np.float32)
     coarse = Volume(sd, sp, volume.origin, volume.direction)

@@ -56,8 +56,9 @@ class MassSpring(Method):
             openings = [(cl.points_lps[0], -cl.tangents[0]), (cl.points_lps[-1], cl.tangents[-1])]
             model = build_wall_model(crop, prep.wall, prep.lumen, d=d, cut_points_lps=cut, openings=openings,
                                      centerline_lps=cl.points_lps)
-        with timed_stage(progress, "unfolding forces", seconds, *span["unfolding forces"]):
-            targets = unfolding_targets(model, inc, cl, depth=wall_depth(model.vertices, prep.lumen, crop))
+        with timed_stage(progress, "unfolding forces", seconds, *span["unfolding forces"]) as report:
+            depth = wall_depth(model.vertices, prep.lumen, crop, progress=lambda f: report(0.9 * f))
+            targets = unfolding_targets(model, inc, cl, depth=depth)
         solver = self.solver_parameters(params)
         with timed_stage(progress, "simulation", seconds, *span["simulation"]) as report:
             sim = simulate(model, targets, solver, progress=report)
