@@ -1,13 +1,10 @@
 """The random stomach family (StomachUnfoldEval.random_stomach), its geodesics, hybrids and the flat-layout bound."""
 import json
 import os
-import sys
 
 import numpy as np
 import pytest
 from scipy import ndimage
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from StomachUnfoldEval.flat_bound import flat_layout_bound, pairwise_distortion
 from StomachUnfoldEval.random_stomach import (
@@ -24,7 +21,9 @@ from StomachUnfoldEval.random_stomach import (
 )
 from StomachUnfoldLib.errors import InputError
 
-DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "..", "shared", "data")
+from conftest import SHARED_DIR
+
+DATA = os.path.join(SHARED_DIR, "data")
 SEED_A = 8    # J shape, retained fluid, rugae, i/j swapped and every axis flipped
 SEED_B = 10   # cascade, slices along y (axis permutation)
 
