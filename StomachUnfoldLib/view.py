@@ -13,8 +13,9 @@ import numpy as np
 
 from .geometry import Volume
 
-__all__ = ["first_hit", "clean_outline", "surface_height", "ripple_mm", "smooth_mucosa_mask", "shade_first_hit",
-           "render_view", "save_png", "STAIRCASE_SMOOTH_VOX", "SHARPNESS_RAMP", "edge_sharpness", "staircase_smoothing_vox", "HEIGHT_SIGMA_MM", "SPIKE_WIDTH_PX"]
+__all__ = ["first_hit", "clean_outline", "edge_sharpness", "staircase_smoothing_vox", "surface_height", "ripple_mm",
+           "smooth_mucosa_mask", "display_volume", "shade_first_hit", "render_view", "save_png",
+           "STAIRCASE_SMOOTH_VOX", "SHARPNESS_RAMP", "HEIGHT_SIGMA_MM", "SPIKE_WIDTH_PX"]
 
 #: Gaussian blur (voxels) of the unfolded volume before the surface is located, for data whose air/wall edge
 #: is a voxel staircase (a binary lumen: the terraced "wood-grain"); a CT with a scanner's blur gets none.
@@ -184,6 +185,27 @@ def smooth_mucosa_mask(hit: np.ndarray, hu: np.ndarray, spacing_mm: float, edge_
     if dense.any():
         inner &= ndimage.distance_transform_edt(~dense) * spacing_mm > marker_mm
     return inner
+
+
+def display_volume(unfolded: Volume, threshold_hu: float = -400.0) -> Volume:
+    """Copy of the unfolded volume (int16 HU) for volume rendering: staircase-smoothed and without the spikes.
+
+    The same two fixes as the shaded view: a Gaussian of :func:`staircase_smoothing_vox` voxels (none on a
+    CT's blurred edges, so real detail is kept as it is) and background (-1024 HU) in the columns that
+    :func:`clean_outline` drops. Slicer's renderer shades from the volume's own gradient, so its terraces
+    are those of the data and no transfer function removes them; ``unfolded.nrrd`` itself stays as sampled.
+    """
+    from scipy import ndimage
+
+    k0, _ = first_hit(unfolded, threshold_hu)
+    hit = k0 >= 0
+    drop = hit & ~clean_outline(hit)
+    sv = staircase_smoothing_vox(unfolded, threshold_hu, k0)
+    a = unfolded.array
+    out = (ndimage.gaussian_filter(a.astype(np.float32), sv, mode="nearest", truncate=3.0) if sv > 0.05
+           else a.astype(np.float32))
+    out[:, drop] = -1024.0
+    return unfolded.with_array(np.clip(np.rint(out), -1024, 3071).astype(np.int16))
 
 
 def shade_first_hit(unfolded: Volume, threshold_hu: float = -400.0, marker_hu: float = 200.0,

@@ -171,3 +171,14 @@ def test_ripple_measure_units():
     assert view.ripple_mm(0.3 * x + 0.1 * y, mask, (0.5, 0.5)) < 1e-3
     r = view.ripple_mm(0.1 * np.sin(2 * np.pi * x / 3.0), mask, (0.5, 0.5))
     assert abs(r - 0.1 / np.sqrt(2)) < 0.01, r
+
+
+def test_display_volume():
+    """The volume-rendering copy: spikes set to background, a binary staircase smoothed, a blurred CT untouched."""
+    spiky = view.display_volume(sheet_with_cut_face())
+    assert (spiky.array[:, :, 61:] <= -400).all()
+    assert (spiky.array[5:7, :, :58] > -400).all()
+    binary = voxelise(tilted_plane)
+    assert np.abs(view.display_volume(binary).array.astype(int) - binary.array).max() > 100
+    blurred = voxelise(tilted_plane, blur_vox=0.7)
+    np.testing.assert_array_equal(view.display_volume(blurred).array, blurred.array)

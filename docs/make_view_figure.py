@@ -11,8 +11,8 @@ Writes ``docs/images/view_before_after.png`` (before | after crops) and ``docs/i
 
 ``--vr`` also renders the unfolded volumes offscreen with VTK's CPU ray caster (``VTK_DEFAULT_OPENGL_WINDOW=
 vtkEGLRenderWindow`` where there is no display), as Slicer's volume rendering shows them: the module's
-transfer function on the raw volume, and the recommended one on a copy smoothed by
-``view.staircase_smoothing_vox`` (``view_before_after_vr.png``, luminance ripple in the caption).
+transfer function on the raw volume, and the recommended one on ``view.display_volume`` (staircase-smoothed,
+spikes cleared) (``view_before_after_vr.png``, luminance ripple in the caption).
 """
 from __future__ import annotations
 
@@ -179,15 +179,14 @@ def vr_figure(rows, out_dir: str, plt) -> list[str]:
     """Write view_before_after_vr.png (module TF on the raw volume | recommended TF on the smoothed copy); caption lines."""
     fig, axes = plt.subplots(len(rows), 2, figsize=(11, 3.9 * len(rows)))
     lines = ["", "*Volume rendering (VTK ray caster, `--vr`): left the module's transfer function on `unfolded.nrrd`,",
-             "right the recommended one on a copy smoothed by `view.staircase_smoothing_vox` voxels (none on blurred",
-             "data). Luminance ripple: RMS grey levels of the image less its 3-pixel low-pass over the sheet.*", "",
+             "right the recommended one on `view.display_volume` (smoothed by `view.staircase_smoothing_vox` voxels,",
+             "none on blurred data, and the spike columns cleared). Luminance ripple: RMS grey levels of the image less its 3-pixel low-pass over the sheet.*", "",
              "| volume | method | module TF, raw | recommended TF, raw | recommended TF, smoothed copy |",
              "|---|---|---|---|---|"]
     for ax, r in zip(axes, rows):
         u = r["unfolded"]
         sv = view.staircase_smoothing_vox(u)
-        smooth = u.with_array(np.rint(ndimage.gaussian_filter(u.array.astype(np.float32), sv)).astype(np.int16)
-                              if sv > 0 else u.array)
+        smooth = view.display_volume(u)
         before = volume_render(u, TF_MODULE, 1.0)
         mid = volume_render(u, TF_RECOMMENDED, 0.3)
         after = volume_render(smooth, TF_RECOMMENDED, 0.3)
