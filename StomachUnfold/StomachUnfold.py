@@ -542,11 +542,13 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
 
 def setMucosaTransferFunctions(volumePropertyNode, thresholdHU=-400.0):
     """Set the unfolded view's transfer functions on a volume property node (HU): air clear, mucosa pink, markers yellow."""
+    # a wide ramp over the air/mucosa edge (-800 .. -100 HU at the default threshold): a step at the threshold
+    # renders the sampled surface's iso-lines as terraces (docs/images/view_before_after_vr.png)
     opacity = vtk.vtkPiecewiseFunction()
     opacity.AddPoint(-1024, 0.0)
-    opacity.AddPoint(thresholdHU - 100, 0.0)
-    opacity.AddPoint(thresholdHU + 150, 0.85)
-    opacity.AddPoint(300, 0.95)
+    opacity.AddPoint(thresholdHU - 400, 0.0)
+    opacity.AddPoint(thresholdHU + 100, 0.6)
+    opacity.AddPoint(thresholdHU + 300, 0.95)
     opacity.AddPoint(3071, 1.0)
     color = vtk.vtkColorTransferFunction()
     color.AddRGBPoint(-1024, 0.0, 0.0, 0.0)
