@@ -352,10 +352,10 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     (Gaussian, one voxel or 1.5 mm if less): it crosses the partial-volume voxels of the first 3 mm (air and
     water) and goes on while the HU stays in the water range [``FLUID_MIN_HU``, ``max_hu``] (HU; the wall is
     about 40 HU, fat about -90 HU), stopping at the first voxel above ``max_hu``, at two in a row below the
-    range or after ``max_depth_mm``; each ray is clipped to two voxels beyond the 5 x 5 median of its
-    neighbours' depths (a ray through a thin wall is longer than those around it). Fluid is kept only if at
-    least half of the level has two or more water voxels under it (an air boundary lying flat on tissue has
-    none), and refused with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or
+    range or after ``max_depth_mm``. The fluid's depth below each level voxel is the 5 x 5 median of the rays'
+    depths (a ray stopped by a noise voxel would leave a pillar of "wall" inside the lumen, one through a thin
+    wall a spike). Fluid is kept only if at least half of the level has two or more water voxels under it
+    (each ray clipped to two voxels beyond that median; an air boundary lying flat on tissue has none), and refused with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or
     touching the side of the volume.
 
     Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
@@ -416,11 +416,14 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     run = np.argmax(stop, axis=1)  # voxels of fluid behind each level voxel
     dmap = np.zeros([hu.shape[a] for a in range(3) if a != ax], np.int64)
     dmap[rel2[:, 0], rel2[:, 1]] = run
-    run = np.minimum(run, ndimage.median_filter(dmap, size=5, mode="constant")[rel2[:, 0], rel2[:, 1]] + 2)
-    take = offs[None, :] <= run[:, None]
+    med = ndimage.median_filter(dmap, size=5, mode="constant")[rel2[:, 0], rel2[:, 1]]
+    take = offs[None, :] <= np.minimum(run, med + 2)[:, None]
     water = np.count_nonzero(take & ok & (offs[None, :] > n_partial), axis=1) >= 2
     if float(np.mean(water)) < 0.5:
         return none, info  # a flat air boundary on tissue, not on water
+    # the fluid's floor: the 5 x 5 median of the rays' depths (no pillar left by a ray a noise voxel stopped,
+    # no spike where a ray went through a thin wall)
+    take = offs[None, :] <= np.minimum(med, np.count_nonzero(inside, axis=1))[:, None]
     r, c = np.nonzero(take)
     along = pos[r, c] if st > 0 else (hu.shape[ax] - 1 - pos[r, c])
     vox = np.insert(rel2[r], ax, along, axis=1) + r_lo

@@ -456,7 +456,7 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     progress = progress or (lambda fraction: None)
     warnings = [] if warnings is None else warnings
     crop, lumen, cl, inc = prep.crop, prep.lumen, prep.centerline, prep.incision
-    v, f, mc_step = inner_surface(lumen, crop, max_vertices, prep.mask_given)
+    v, f, mc_step = inner_surface(lumen, crop, max_vertices, prep.lumen_is_mask)
     n_mc = len(v)
     progress(0.3)
     f = f[largest_component(len(v), f)]
