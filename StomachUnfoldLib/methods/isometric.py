@@ -30,6 +30,10 @@ __all__ = ["IsometricFlattening", "arap", "triangle_frames", "cot_laplacian", "s
            "open_surface", "taubin_smooth", "IsoSurface", "MAX_MESH_VERTICES"]
 
 MAX_MESH_VERTICES = 20000
+#: fraction of doubly covered pixels of the final ARAP map above which the latest crossing-free iterate is preferred
+OVERLAP_TOLERANCE = 0.005
+#: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
+FLUID_FRACTION = 0.01
 
 
 def _unique_rows(e: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
@@ -124,8 +128,8 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
 
     Local/global iterations (Liu et al. 2008): per-triangle closest rotations of the current Jacobians, then one
     solve with the cotangent Laplacian (factorised once; one vertex pinned for translation). Stops when the
-    relative energy change is under ``tol``. With ``injective``, a final map whose free boundary crosses itself is
-    replaced by the latest iterate without crossings if there is one from iteration ``min_ok_iter`` on.
+    relative energy change is under ``tol``. With ``injective``, when the final map's free boundary crosses itself,
+    ``info["fallback_uv"]`` holds the latest iterate without crossings from iteration ``min_ok_iter`` on (else None).
     Returns (uv, info with iterations, energy trace, flipped count).
     """
     from scipy.sparse.linalg import splu
@@ -197,11 +201,12 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         progress(it / max_iter)
         if len(energies) >= 2 and abs(energies[-2] - energies[-1]) <= tol * max(energies[-1], 1e-12):
             break
+    fallback = None
     if bedges is not None and last_ok is not None and last_ok[0] < it and last_ok[0] >= min_ok_iter \
             and boundary_self_intersects(uv, bedges):
-        # the free boundary came to overlap itself (a strongly bent or tapering tube wraps round): keep the latest
-        # map without overlap if ARAP had got far enough there
-        overlap_stop, uv = last_ok
+        # the free boundary came to overlap itself (a strongly bent or tapering tube wraps round): the latest map
+        # without overlap, if ARAP had got far enough there, is offered to the caller
+        overlap_stop, fallback = last_ok
     du, rdx = rotations(uv)
     e_final = float(np.sum(wr[:, None] * (du - rdx) ** 2))
     sa = signed_area_2d(uv, f)
@@ -211,7 +216,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     return uv, {"arap_iterations": it, "arap_stopped_before_overlap": overlap_stop, "arap_energy": e_final,
                 "arap_energy_relative": e_final / max(total_w, 1e-12),
                 "arap_energy_trace": [float(e) for e in energies[:: max(1, len(energies) // 10)]],
-                "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum())}
+                "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum()), "fallback_uv": fallback}
 
 
 def untangle(uv: np.ndarray, f: np.ndarray, rounds: int = 20) -> tuple[np.ndarray, int, int]:
@@ -582,6 +587,13 @@ class IsometricFlattening(Method):
     def unfold(self, prep, progress) -> Unfolding:
         """Cut the inner wall open along the incision, flatten it near-isometrically, sample the CT along normals."""
         warnings, seconds = [], {}
+        fluid = _fluid_fraction(prep)
+        if fluid > FLUID_FRACTION and not prep.mask_given:
+            # the lumen holds fluid (HU above the air threshold): the wall is the lumen mask's surface, not the air's,
+            # and the lumen's contents are cleared to air in the view, as with a stomach mask
+            from dataclasses import replace
+
+            prep = replace(prep, mask_given=True)
         with timed_stage(progress, "surface", seconds, 0.0, 0.3) as report:
             if prep.params.isometric_surface == "trimmed":
                 cut = cut_surface(prep, MAX_MESH_VERTICES, warnings)
@@ -592,6 +604,13 @@ class IsometricFlattening(Method):
             uv0 = _start_map(cut)
             t_init = time.perf_counter() - t0
             uv, info = arap(cut.v, cut.f, uv0, progress=report)
+            fb = info.pop("fallback_uv")
+            info["flat_overlap_fraction"] = _overlap_fraction(uv, cut.f, prep.pixel_mm)
+            info["used_crossing_free_iterate"] = False
+            if fb is not None and info["flat_overlap_fraction"] > OVERLAP_TOLERANCE:
+                ov_fb = _overlap_fraction(fb, cut.f, prep.pixel_mm)
+                if ov_fb < info["flat_overlap_fraction"]:
+                    uv, info["flat_overlap_fraction"], info["used_crossing_free_iterate"] = fb, ov_fb, True
             uv, _, info["flipped_after_untangle"] = untangle(uv, cut.f)
             f_keep, info["peeled_triangles"] = peel_boundary(cut.v, cut.f, uv)
             if info["peeled_triangles"]:
@@ -606,7 +625,7 @@ class IsometricFlattening(Method):
             vol, fwd, inv, mesh, vinfo = sample_flat_map(prep, cut, uv, report)
         cut_len = float(np.linalg.norm(cut.v[cut.boundary_edges[:, 0]] - cut.v[cut.boundary_edges[:, 1]],
                                        axis=1).sum()) if len(cut.boundary_edges) else 0.0
-        section = {**cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
+        section = {"lumen_fluid_fraction": fluid, **cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
                    "flipped_triangle_fraction": flipped_frac, "start_map_seconds": t_init}
         return Unfolding(vol, MapCorrespondence(fwd, inv), mesh, section, warnings, seconds)
 
@@ -629,6 +648,24 @@ def _with_faces(cut, f: np.ndarray, uv: np.ndarray):
         p = per_vertex["partner"]
         per_vertex["partner"] = np.where(p >= 0, remap[np.maximum(p, 0)], -1)
     return replace(cut, f=f, boundary_edges=ue[cnt == 1], **per_vertex), uv[used]
+
+
+def _fluid_fraction(prep) -> float:
+    """Fraction of the lumen's voxels whose CT value (HU) lies above the air threshold (retained fluid)."""
+    a = np.asarray(prep.crop.array)[prep.lumen]
+    return float(np.mean(a > prep.params.front.air_threshold_hu)) if a.size else 0.0
+
+
+def _overlap_fraction(uv: np.ndarray, f: np.ndarray, s: float) -> float:
+    """Fraction of the pixels (size s mm) a flat map (V,2 mm) covers that more than one triangle covers."""
+    from ..surface import rasterise
+
+    q = uv - uv.min(0) + s
+    ni, nj = int(np.ceil(q[:, 0].max() / s)) + 2, int(np.ceil(q[:, 1].max() / s)) + 2
+    if ni * nj > 25_000_000:
+        return 1.0
+    tri, _, hits = rasterise(q, f, (nj, ni), s, lambda fraction: None)
+    return float((hits > 1).sum() / max(int((tri >= 0).sum()), 1))
 
 
 def _start_map(cut) -> np.ndarray:
