@@ -354,9 +354,10 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     about 40 HU, fat about -90 HU), stopping at the first voxel above ``max_hu``, at two in a row below the
     range or after ``max_depth_mm``. The fluid's depth below each level voxel is the 5 x 5 median of the rays'
     depths (a ray stopped by a noise voxel would leave a pillar of "wall" inside the lumen, one through a thin
-    wall a spike). Fluid is kept only if at least half of the level has two or more water voxels under it
-    (each ray clipped to two voxels beyond that median; an air boundary lying flat on tissue has none), and refused with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or
-    touching the side of the volume.
+    wall a spike), less voxels over ``max_hu`` + 50 HU (a bead or calcification on the floor stays). Fluid is
+    kept only if at least half of the level has two or more water voxels under it (each ray clipped to two
+    voxels beyond that median; an air boundary lying flat on tissue has none), and refused with a warning if
+    it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
 
     Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
     of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level),
@@ -424,6 +425,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     # the fluid's floor: the 5 x 5 median of the rays' depths (no pillar left by a ray a noise voxel stopped,
     # no spike where a ray went through a thin wall)
     take = offs[None, :] <= np.minimum(med, np.count_nonzero(inside, axis=1))[:, None]
+    take &= prof <= max_hu + 50.0  # never over a marker, calcification or contrast the median reached
     r, c = np.nonzero(take)
     along = pos[r, c] if st > 0 else (hu.shape[ax] - 1 - pos[r, c])
     vox = np.insert(rel2[r], ax, along, axis=1) + r_lo
