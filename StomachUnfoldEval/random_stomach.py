@@ -60,7 +60,7 @@ __all__ = [
 SIZES = {"tiny": ((1.7, 2.1), (2.0, 2.5)), "small": ((1.0, 1.4), (1.0, 2.5)), "full": ((0.6, 0.9), (0.6, 2.5))}
 SHAPES = ("j", "steer_horn", "cascade")
 HU = {"air": -1000, "lung": -850, "fat": -90, "tissue": 30, "muscle": 45, "wall": 40, "liver": 60, "spleen": 50,
-      "bone": 350, "colon_wall": 40, "marker": 800, "fluid": 10}
+      "bone": 350, "colon_wall": 40, "marker": 2500, "fluid": 10}
 LABELS = {"background": 0, "lumen_air": 1, "lumen_fluid": 2, "wall": 3, "marker": 4, "lung": 5, "colon_gas": 6,
           "tube_wall": 7, "tube_lumen": 8, "liver": 9, "spleen": 10, "outside_air": 11, "colon_wall": 12}
 GEODESIC_GRID_MM = 1.0
