@@ -47,11 +47,13 @@ def triangle_stretch(rest: np.ndarray, deformed: np.ndarray, tris: np.ndarray):
 
 @dataclass
 class DistortionMap:
-    """Per pixel (j, i) of the view: area scale (view / mucosa), worst length scale (>= 1), covered mask."""
+    """Per pixel (j, i) of the view: area scale (view / mucosa), worst length scale (>= 1), covered mask, and where
+    more than one piece of the mucosa maps (the flat map folds over itself there)."""
 
     area_scale: np.ndarray
     length_scale: np.ndarray
     covered: np.ndarray
+    multiple: np.ndarray | None = None
 
     def summary(self) -> dict:
         """Report figures: covered pixels, the share where lengths are within TRUST_LIMIT, area-scale percentiles."""
@@ -78,20 +80,20 @@ def distortion_map(unfolded: Volume, mesh, progress=None) -> DistortionMap:
     length = np.ones((nj, ni))
     covered = np.zeros((nj, ni), bool)
     if len(tris) == 0:
-        return DistortionMap(area, length, covered)
+        return DistortionMap(area, length, covered, np.zeros((nj, ni), bool))
     s1, s2, _, ok = triangle_stretch(mesh.rest_lps, mesh.unfolded_lps, tris)
     ijk = unfolded.lps_to_index(np.asarray(mesh.unfolded_lps, float))
     if progress is not None:
         progress(0.3)
     # pixel units: rasterise in a square grid of unit pixels, (i, j) of the view
     prog = Progress(None if progress is None else (lambda stage, fraction: progress(0.3 + 0.7 * fraction)))
-    tri, _, _ = rasterise(ijk[:, :2], tris[ok], (nj, ni), 1.0, prog, batch=500_000)
+    tri, _, hits = rasterise(ijk[:, :2], tris[ok], (nj, ni), 1.0, prog, batch=500_000)
     hit = tri >= 0
     t = np.flatnonzero(ok)[tri[hit]]
     area[hit] = s1[t] * s2[t]
     length[hit] = np.maximum(s1[t], 1.0 / np.maximum(s2[t], 1e-12))
     covered[hit] = True
-    return DistortionMap(area, length, covered)
+    return DistortionMap(area, length, covered, hits > 1)
 
 
 def _overlay(view_rgb: np.ndarray, dmap: DistortionMap) -> np.ndarray:

@@ -155,9 +155,10 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
         from .quality import quality_metrics
 
         with timed_stage(prog, "quality", seconds, *span["quality"]) as report:
+            dmap = result.distortion(progress=lambda f: report(0.2 * f))
             result.report.quality = quality_metrics(out.unfolded, out.correspondence, out.mesh, prep.lumen_crop,
-                                                    result.centerline_lps, progress=lambda f: report(0.9 * f))
-            dmap = result.distortion(progress=lambda f: report(0.9 + 0.1 * f))
+                                                    result.centerline_lps, progress=lambda f: report(0.2 + 0.8 * f),
+                                                    folded=dmap.multiple if out.mesh.kind == "triangle" else None)
             result.report.quality["distortion_map"] = dmap.summary()
     seconds["total"] = time.perf_counter() - t_all
     return result

@@ -13,7 +13,7 @@ from scipy import ndimage
 from .geometry import Volume
 from .view import first_hit
 
-__all__ = ["layer_runs", "overlap_fraction", "visible_points", "mucosa_points", "surface_distortion",
+__all__ = ["layer_runs", "overlap_fraction", "visible_points", "mucosa_points", "onto_wall", "surface_distortion",
            "inverted_fraction", "stretched_fraction", "quality_metrics", "GRADE_THRESHOLDS"]
 
 
@@ -71,7 +71,8 @@ def surface_distortion(rest: np.ndarray, deformed: np.ndarray, tris: np.ndarray)
 
 def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, max_points: int = 8000,
                   seed: int = 0) -> np.ndarray:
-    """LPS points (mm) on the original inner wall (lumen voxels touching non-lumen) between the cardia and pylorus.
+    """LPS points (mm) on the original inner wall between the cardia and pylorus: lumen voxels touching non-lumen,
+    moved onto the lumen's boundary (:func:`onto_wall`).
 
     With the centreline, points beyond the planes through its end points (the openings the method trims)
     are left out.
@@ -89,7 +90,41 @@ def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, 
         pts = pts[~beyond]
     if len(pts) > max_points:
         pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
-    return pts
+    return onto_wall(pts, lumen_crop)
+
+
+def onto_wall(points_lps: np.ndarray, lumen_crop: Volume, sigma_vox: float = 1.0) -> np.ndarray:
+    """Move lumen-edge points (LPS mm) outward along the lumen's normal onto its boundary (the mucosa surface).
+
+    A lumen voxel centre next to the wall lies up to half a voxel inside the lumen: on 2.5 mm slices more than
+    a millimetre in front of the mucosa. The boundary is where the lumen mask, smoothed by ``sigma_vox`` voxels,
+    falls to 0.5; points with no crossing within 1.5 voxels stay where they are.
+    """
+    pts = np.asarray(points_lps, float).reshape(-1, 3)
+    if len(pts) == 0:
+        return pts
+    g = Volume(ndimage.gaussian_filter(lumen_crop.array.astype(np.float32), sigma_vox), lumen_crop.spacing,
+               lumen_crop.origin, lumen_crop.direction)
+    sp = np.asarray(lumen_crop.spacing, float)
+    grad = np.zeros_like(pts)
+    for a in range(3):  # central differences along the grid axes, converted to LPS
+        step = lumen_crop.direction[:, a] * sp[a]
+        d = (g.sample(pts + step, order=1, cval=0.0) - g.sample(pts - step, order=1, cval=0.0)) / (2.0 * sp[a])
+        grad += d[:, None] * lumen_crop.direction[:, a][None, :]
+    norm = np.linalg.norm(grad, axis=1)
+    n = -grad / np.maximum(norm, 1e-12)[:, None]
+    ts = np.linspace(0.0, 1.5 * float(sp.max()), 25)
+    vals = np.stack([g.sample(pts + t * n, order=1, cval=0.0) for t in ts], 1)   # (N, T)
+    below = vals < 0.5
+    first = np.argmax(below, axis=1)
+    ok = below.any(axis=1) & (first > 0) & (norm > 1e-6)
+    f = np.clip(first, 1, len(ts) - 1)
+    r = np.arange(len(pts))
+    v0, v1 = vals[r, f - 1], vals[r, f]
+    t = ts[f - 1] + (v0 - 0.5) / np.maximum(v0 - v1, 1e-6) * (ts[1] - ts[0])
+    out = pts.copy()
+    out[ok] = pts[ok] + t[ok, None] * n[ok]
+    return out
 
 
 def visible_points(vol: Volume, mapped_lps: np.ndarray, k_hit: np.ndarray) -> np.ndarray:
@@ -137,12 +172,15 @@ def stretched_fraction(mesh, limit: float = 1.5) -> float:
 
 
 def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, centerline_lps,
-                    threshold_hu: float = -400.0, progress=None) -> dict:
+                    threshold_hu: float = -400.0, progress=None, folded=None) -> dict:
     """All automatic quality metrics and the grade of an unfolded Volume (HU), from any method's outputs.
 
     ``correspondence.to_unfolded`` maps CT LPS mm into the view; ``mesh`` is the method's Mesh; ``lumen_crop``
     the lumen on the CT crop and ``centerline_lps`` the centreline, from which the mucosa points are drawn.
-    ``progress`` (callable(fraction)) is called several times a second of work.
+    ``progress`` (callable(fraction)) is called several times a second of work. ``folded`` (bool (j, i), e.g. a
+    DistortionMap's ``multiple``) marks pixels where more than one piece of the mucosa's surface maps: a fold-over
+    of a surface map that the volume, resampled from one piece per pixel, cannot show as a second layer (for a
+    surface method's triangle sheet; a volumetric model's folds show as layers).
     """
     report = progress or (lambda fraction: None)
     k_hit, _ = first_hit(vol, threshold_hu)
@@ -158,7 +196,10 @@ def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, cente
     visible_fraction = float(visible_points(vol, mapped, k_hit).sum() / max(len(pts), 1))
     # overlapping: two layers on a ray; inverted cells of the model
     runs = layer_runs(vol, threshold_hu)
-    over = ndimage.binary_opening(runs > 1, structure=np.ones((2, 2), bool))
+    two = runs > 1
+    if folded is not None:
+        two = two | np.asarray(folded, bool)
+    over = ndimage.binary_opening(two, structure=np.ones((2, 2), bool))
     report(0.7)
     # broken: over-stretched springs (edges longer than 1.5x) and holes inside the view's outline
     holes = ndimage.binary_fill_holes(seen) & ~seen

@@ -330,7 +330,8 @@ def signed_area_2d(uv: np.ndarray, f: np.ndarray) -> np.ndarray:
 
 def rasterise(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float, prog: Progress,
                batch: int = 2_000_000):
-    """Per pixel (j, i) of a grid with pixel centres at (i*s, j*s) mm: covering triangle id (-1 none), barycentrics."""
+    """Per pixel (j, i) of a grid with pixel centres at (i*s, j*s) mm: covering triangle id (-1 none), barycentrics,
+    and how many triangles hold the pixel centre strictly inside (more than one: the map folds over there)."""
     nj, ni = shape_ji
     tri = np.full(nj * ni, -1, np.int64)
     bary = np.zeros((nj * ni, 3))
@@ -367,7 +368,9 @@ def rasterise(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float
             inside &= (pix[..., 0] >= 0) & (pix[..., 0] < ni) & (pix[..., 1] >= 0) & (pix[..., 1] < nj)
             tt, kk = np.nonzero(inside)
             lin = pix[tt, kk, 1] * ni + pix[tt, kk, 0]
-            np.add.at(hits, lin, 1)
+            # hits count triangles holding the pixel centre strictly inside (not on a shared edge or vertex)
+            strict = np.minimum(np.minimum(l0[tt, kk], l1[tt, kk]), l2[tt, kk]) > 1e-3
+            np.add.at(hits, lin[strict], 1)
             tri[lin] = t_ids[tt]
             bary[lin] = np.stack([l0[tt, kk], l1[tt, kk], l2[tt, kk]], 1)
             prog((done + a + len(t_ids)) / len(f))
