@@ -14,10 +14,10 @@ from StomachUnfoldLib.surface import signed_area_2d
 
 
 def _euler_and_loops(v, f):
-    from StomachUnfoldLib.methods.isometric import _boundary_loops
+    from StomachUnfoldLib.methods.isometric import boundary_loops
 
     e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
-    return len(np.unique(f)) - len(e) + len(f), len(_boundary_loops(f))
+    return len(np.unique(f)) - len(e) + len(f), len(boundary_loops(f))
 
 
 def _grid(nu, nv, closed_v=False):

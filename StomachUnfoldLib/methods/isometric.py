@@ -427,7 +427,7 @@ class IsoSurface:
     info: dict
 
 
-def _boundary_loops(f: np.ndarray) -> list:
+def boundary_loops(f: np.ndarray) -> list:
     """Vertex sets (arrays) of the connected boundary components of a triangle mesh."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -444,6 +444,45 @@ def _boundary_loops(f: np.ndarray) -> list:
     return [ids[lab == k] for k in range(n)]
 
 
+def _cut_path(v, f, loops, start_loop, end_loop, inc, warnings) -> np.ndarray:
+    """Vertex ids of the cut: the Dijkstra path on the mesh edges from the cardia opening to the pylorus opening,
+    edge cost length x (1 + (distance to the incision line / 2 mm)^2), never along a boundary."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    ip = np.asarray(inc.points_lps, float)
+    seg = np.linalg.norm(np.diff(ip, axis=0), axis=1)
+    dense = [ip[:1]]
+    for a, b, L in zip(ip[:-1], ip[1:], seg):
+        n = max(1, int(np.ceil(L / 0.5)))
+        dense.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    d_inc, _ = cKDTree(np.concatenate(dense)).query(v)
+    e = _edges(f)
+    bnd_v = np.zeros(len(v), bool)
+    for b in loops:
+        bnd_v[b] = True
+    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    cost = length * (1.0 + (0.5 * (d_inc[e[:, 0]] + d_inc[e[:, 1]]) / 2.0) ** 2)
+    # no walking along a boundary: edges with both ends on a boundary are barred
+    cost = np.where(bnd_v[e[:, 0]] & bnd_v[e[:, 1]], np.inf, cost)
+    okc = np.isfinite(cost)
+    G = coo_matrix((cost[okc], (e[okc, 0], e[okc, 1])), shape=(len(v), len(v))).tocsr()
+    src = start_loop[np.argsort(d_inc[start_loop])[:1]]
+    dist, pred = dijkstra(G, directed=False, indices=src, return_predecessors=True)
+    dist, pred = dist[0], pred[0]
+    tgt = end_loop[np.argmin(dist[end_loop])]
+    if not np.isfinite(dist[tgt]):
+        raise AnatomyError("no path on the lumen surface joins the cardia and pylorus openings")
+    path = [int(tgt)]
+    while path[-1] != src[0]:
+        path.append(int(pred[path[-1]]))
+    path = np.array(path[::-1])
+    if bnd_v[path[1:-1]].any():
+        warnings.append("the cut path touches a hole of the surface")
+    return path
+
+
 def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | None = None,
                  smooth_iterations: int = 10, margin_mm: float = 1.0, progress=None) -> IsoSurface:
     """The lumen's whole inner wall (LPS mm), opened where the judge's mucosa ends, cut along the incision: a disc.
@@ -455,7 +494,7 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     length x (1 + (distance to the incision / 2 mm)^2)); the path's vertices are duplicated.
     """
     from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order, dijkstra
+    from scipy.sparse.csgraph import breadth_first_order
     from scipy.spatial import cKDTree
 
     progress = progress or (lambda fraction: None)
@@ -494,7 +533,7 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     if np.mean(np.sum(vn * (v - Pd[near]), 1) > 0) < 0.5:
         f = f[:, ::-1]
         vn = -vn
-    loops = _boundary_loops(f)
+    loops = boundary_loops(f)
     if len(loops) < 2:
         raise AnatomyError("the lumen surface has no opening at the cardia or the pylorus end; check the points")
     # the openings: the boundary loops nearest the centreline's two ends (others are holes of the surface)
@@ -503,36 +542,7 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     if len(loops) > 2:
         warnings.append(f"the lumen surface has {len(loops) - 2} holes besides the two openings")
     progress(0.6)
-    # --- cut path: Dijkstra on the edges, cost favouring closeness to the incision ---------------------------------
-    ip = np.asarray(inc.points_lps, float)
-    seg = np.linalg.norm(np.diff(ip, axis=0), axis=1)
-    dense = [ip[:1]]
-    for a, b, L in zip(ip[:-1], ip[1:], seg):
-        n = max(1, int(np.ceil(L / 0.5)))
-        dense.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
-    d_inc, _ = cKDTree(np.concatenate(dense)).query(v)
-    e = _edges(f)
-    bnd_v = np.zeros(len(v), bool)
-    for b in loops:
-        bnd_v[b] = True
-    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
-    cost = length * (1.0 + (0.5 * (d_inc[e[:, 0]] + d_inc[e[:, 1]]) / 2.0) ** 2)
-    # no walking along a boundary: edges with both ends on a boundary are barred
-    cost = np.where(bnd_v[e[:, 0]] & bnd_v[e[:, 1]], np.inf, cost)
-    okc = np.isfinite(cost)
-    G = coo_matrix((cost[okc], (e[okc, 0], e[okc, 1])), shape=(len(v), len(v))).tocsr()
-    src = start_loop[np.argsort(d_inc[start_loop])[:1]]
-    dist, pred = dijkstra(G, directed=False, indices=src, return_predecessors=True)
-    dist, pred = dist[0], pred[0]
-    tgt = end_loop[np.argmin(dist[end_loop])]
-    if not np.isfinite(dist[tgt]):
-        raise AnatomyError("no path on the lumen surface joins the cardia and pylorus openings")
-    path = [int(tgt)]
-    while path[-1] != src[0]:
-        path.append(int(pred[path[-1]]))
-    path = np.array(path[::-1])
-    if bnd_v[path[1:-1]].any():
-        warnings.append("the cut path touches a hole of the surface")
+    path = _cut_path(v, f, loops, start_loop, end_loop, inc, warnings)
     progress(0.7)
     nv0 = len(v)
     v2, f2, srcv = cut_along_path(v, f, path, ends_on_boundary=True)
@@ -564,7 +574,7 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     ue, cnt = _unique_rows(edges2, return_counts=True)
     euler = len(v2) - len(ue) + len(f2)
     bnd = ue[cnt == 1]
-    n_loops = len(_boundary_loops(f2))
+    n_loops = len(boundary_loops(f2))
     if euler != 1 or n_loops != 1:
         warnings.append(f"the cut surface is not a topological disc (Euler characteristic {euler}, {n_loops} boundary "
                         "loops); the flat map may fold")
