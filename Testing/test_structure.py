@@ -14,7 +14,7 @@ import pytest
 
 from StomachUnfoldLib.cli import build_parser
 from StomachUnfoldLib.methods import Method, Unfolding, get_method, method_names, register
-from StomachUnfoldLib.params import INCISION_SIDES, UnfoldParameters, parameter_specs
+from StomachUnfoldLib.params import UnfoldParameters, parameter_specs
 
 from conftest import REPO
 
