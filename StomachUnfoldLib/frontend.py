@@ -201,13 +201,11 @@ def _lumen(ct, cardia, pylorus, params, mask, report):
 
 
 def _check_centerline(cl, cell_mm) -> list[str]:
+    """PointError when the points lie in one part of the stomach; the front end's warnings about the centreline."""
     if cl.length_mm < 1.5 * float(np.median(cl.radius_mm)):
         raise PointError(f"the cardia and pylorus are only {cl.length_mm:.0f} mm apart along the lumen, less than the "
                          f"stomach's width ({2 * np.median(cl.radius_mm):.0f} mm): both lie in the same part of the "
                          "stomach; place the cardia at the oesophageal end and the pylorus at the duodenal end")
-    if float(np.min(cl.radius_mm)) < 1.5 * float(cell_mm[:2].max()) / 2:
-        return [f"the lumen is as narrow as {np.min(cl.radius_mm):.1f} mm radius, close to the cell size "
-                f"{cell_mm.max():.1f} mm; a smaller --grid-size gives a finer model"]
     return []
 
 

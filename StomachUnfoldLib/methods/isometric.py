@@ -288,6 +288,46 @@ def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1
     return f, f0 - len(f)
 
 
+def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16) -> np.ndarray:
+    """Bool per triangle: its centroid lies strictly inside another triangle of the flat map uv (V,2 mm), a fold."""
+    from scipy.spatial import cKDTree
+
+    if len(f) < 2:
+        return np.zeros(len(f), bool)
+    P = uv[f]                                                   # (F,3,2)
+    c = P.mean(1)
+    k = min(candidates, len(f))
+    _, nb = cKDTree(c).query(c, k=k)                            # (F,k) nearby triangles
+    a, b, d = P[nb, 0], P[nb, 1], P[nb, 2]                      # (F,k,2)
+    q = c[:, None, :]
+    den = (b[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])
+    den = np.where(np.abs(den) > 1e-12, den, np.nan)
+    l1 = ((q[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1]) - (q[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])) / den
+    l2 = ((b[..., 0] - a[..., 0]) * (q[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (q[..., 0] - a[..., 0])) / den
+    inside = (l1 > 1e-3) & (l2 > 1e-3) & (1 - l1 - l2 > 1e-3)
+    inside &= nb != np.arange(len(f))[:, None]
+    return inside.any(1)
+
+
+def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40) -> tuple[np.ndarray, int]:
+    """Peel a flap of the flat map folded over the rest, from its free edge in: boundary triangles that overlap
+    another are dropped, round by round, until no boundary triangle overlaps (the mucosa under them maps to their
+    neighbours, hidden rather than shown twice). Returns (kept triangles, number dropped)."""
+    f0 = len(f)
+    for _ in range(rounds):
+        over = overlapping_triangles(f, uv)
+        if not over.any():
+            break
+        ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        ue, inv, cnt = _unique_rows(ee, return_inverse=True, return_counts=True)
+        on_b = (cnt == 1)[inv.ravel()].reshape(3, -1).any(0)
+        drop = over & on_b
+        if not drop.any():
+            break
+        f = f[~drop]
+    return f, f0 - len(f)
+
+
 def stretch_stats(v: np.ndarray, f: np.ndarray, uv: np.ndarray) -> dict:
     """Flat-map Jacobian singular values per triangle: max and 95th percentile of the stretch s1, max of 1/s2."""
     x, area = triangle_frames(v, f)
@@ -623,7 +663,8 @@ class IsometricFlattening(Method):
                     uv, info["flat_overlap_fraction"], info["used_crossing_free_iterate"] = fb, ov_fb, True
             uv, _, info["flipped_after_untangle"] = untangle(uv, cut.f)
             f_keep, info["peeled_triangles"] = peel_boundary(cut.v, cut.f, uv)
-            if info["peeled_triangles"]:
+            f_keep, info["peeled_overlap_triangles"] = peel_overlaps(f_keep, uv)
+            if info["peeled_triangles"] or info["peeled_overlap_triangles"]:
                 cut, uv = _with_faces(cut, f_keep, uv)
             uv, flipped_frac = orient_rigid(uv, cut, prep.pixel_mm)
             st = stretch_stats(cut.v, cut.f, uv)

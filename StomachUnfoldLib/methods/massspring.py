@@ -50,6 +50,9 @@ class MassSpring(Method):
         seconds, warnings = {}, []
         d = params.grid_voxels(prep.ct.spacing)
         cell = prep.cell_mm
+        if float(np.min(cl.radius_mm)) < 1.5 * float(cell[:2].max()) / 2:
+            warnings.append(f"the lumen is as narrow as {np.min(cl.radius_mm):.1f} mm radius, close to the cell size "
+                            f"{cell.max():.1f} mm; a smaller --grid-size gives a finer model")
         with timed_stage(progress, "wall model", seconds, *span["wall model"]):
             cut = incision_surface_points(inc, cl, depth_mm=params.wall_thickness_mm + 2.0 * cell.max(),
                                           inside_mm=cell.max(), sample_mm=0.3 * cell.min(), extend_mm=cell.max())
