@@ -225,7 +225,7 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
             cases.append(Case(f"{src['_name']}/grid_mm={g}", src, {"grid_mm": g}, group="resolution"))
     if "peers" in parts:
         for src in shapes:
-            for m in ("cylindrical", "lscm"):
+            for m in ("isometric", "cylindrical", "lscm"):
                 cases.append(Case(f"{src['_name']}/{m}", src, {}, method=m, group="peers"))
     if "real" in parts and data_dir and os.path.isdir(data_dir):
         d = data_dir
@@ -238,7 +238,7 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         for name, src in reals:
             if os.path.exists(src["real"]):
                 cases.append(Case(name, src, {"grid_size": 2, "wall_thickness_mm": 4.0}, group="real"))
-                for m in ("cylindrical", "lscm"):  # the peers on the same CTs and labels
+                for m in ("isometric", "cylindrical", "lscm"):  # the other methods on the same CTs and labels
                     cases.append(Case(f"{name}/{m}", src, {}, method=m, group="real"))
     if "stomachs" in parts:
         cases += family_cases(quick, data_dir)

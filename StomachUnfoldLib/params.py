@@ -28,7 +28,7 @@ INTEGRATORS = ("newmark", "explicit")
 #: Boundary forms of the LSCM method's conformal map.
 LSCM_BOUNDARIES = ("tube", "two_pins", "spectral")
 #: The method a run uses unless told otherwise.
-DEFAULT_METHOD = "massspring"
+DEFAULT_METHOD = "isometric"
 
 # The default cell: the paper's d = 8 voxels on its CTs of about 0.7 mm, kept in mm so that a coarser CT does not
 # get a coarser model (d = 8 at 1.2 mm makes 9.6 mm cells, one per wall thickness, and grades fair where 5.6 mm

@@ -16,7 +16,7 @@ from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldEval.phantom import make_phantom, write_phantom
 from StomachUnfoldLib.pipeline import UnfoldParameters, stage_names, unfold
 
-TINY = UnfoldParameters(grid_size=3, wall_thickness_mm=4.0)
+TINY = UnfoldParameters(method="massspring", grid_size=3, wall_thickness_mm=4.0)  # the mass-spring model's faults
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +139,7 @@ def test_swapped_points_are_detected_and_exchanged(phantom):
 
 def test_no_convergence_returns_last_state_with_warning(phantom):
     ct, truth = phantom
-    res = unfold(ct, *_pts(truth), UnfoldParameters(grid_size=3, max_iterations=2, min_iterations=1))
+    res = unfold(ct, *_pts(truth), UnfoldParameters(method="massspring", grid_size=3, max_iterations=2, min_iterations=1))
     sim = res.report["method"]["simulation"]
     assert sim["iterations"] == 2 and not sim["converged"]
     assert any("no convergence" in w for w in res.report["warnings"])
@@ -148,7 +148,7 @@ def test_no_convergence_returns_last_state_with_warning(phantom):
 def test_divergence_is_reported_not_crashed(phantom):
     ct, truth = phantom
     with pytest.raises(SimulationError, match="diverged"):
-        unfold(ct, *_pts(truth), UnfoldParameters(grid_size=3, beta=1e-4, time_step=100.0))
+        unfold(ct, *_pts(truth), UnfoldParameters(method="massspring", grid_size=3, beta=1e-4, time_step=100.0))
 
 
 @pytest.mark.parametrize("stage", stage_names("massspring"))
@@ -194,7 +194,7 @@ def test_ctrl_c_on_the_command_line_leaves_no_output(tmp_path):
 def test_property_succeeds_with_valid_report_or_fails_with_a_documented_error(phantom, dc, dp, d, kappa, h, side):
     ct, truth = phantom
     c, p = _pts(truth)
-    params = UnfoldParameters(grid_size=d, kappa=kappa, time_step=h, incision=side, wall_thickness_mm=4.0)
+    params = UnfoldParameters(method="massspring", grid_size=d, kappa=kappa, time_step=h, incision=side, wall_thickness_mm=4.0)
     try:
         res = unfold(ct, c + np.array(dc), p + np.array(dp), params)
     except StomachUnfoldError as e:

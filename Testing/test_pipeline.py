@@ -15,7 +15,7 @@ from StomachUnfoldEval.markers import marker_report, visible_markers
 from StomachUnfoldLib.quality import layer_runs, overlap_fraction
 
 # grid of 3 voxels on the tiny (about 1.8 mm) phantoms: cells of about 5.4 mm, like the paper's d = 8 at 0.7 mm
-TINY = UnfoldParameters(grid_size=3, wall_thickness_mm=4.0)
+TINY = UnfoldParameters(method="massspring", grid_size=3, wall_thickness_mm=4.0)
 
 
 @pytest.fixture(scope="module")

@@ -308,7 +308,7 @@ def test_transfer_functions_go_through_the_volume_property_node(module):
     events = []
     node.AddObserver(vtk.vtkCommand.ModifiedEvent, lambda c, e: events.append(e))
     module.pythonModule.setMucosaTransferFunctions(node)
-    assert node.GetScalarOpacity().GetValue(-1000) == 0.0 and node.GetScalarOpacity().GetValue(-250) > 0.8
+    assert node.GetScalarOpacity().GetValue(-1000) == 0.0 and node.GetScalarOpacity().GetValue(-100) > 0.9
     assert node.GetColor().GetSize() == 6 and len(events) == 1
 
 
