@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from StomachUnfoldLib.errors import InputError
 from StomachUnfoldLib.geometry import Volume, lps_to_ras
 
-__all__ = ["SHAPES", "SIZES", "stomach_centerline", "make_phantom", "write_phantom"]
+__all__ = ["SHAPES", "SIZES", "stomach_centerline", "make_phantom", "write_phantom", "write_case"]
 
 SHAPES = ("straight", "bent", "j", "twisted", "thin_wall", "hook")
 SIZES = {"tiny": 1.8, "small": 1.2, "medium": 0.9, "full": 0.7}
@@ -239,9 +239,14 @@ def _paint_spheres(vol: Volume, centres, radius_mm: float, value: int, only_abov
 
 def write_phantom(path, **kwargs):
     """Write a phantom volume, its truth JSON (same stem + .json) and a cardia/pylorus .mrk.json; returns (path, json)."""
+    vol, truth = make_phantom(**kwargs)
+    return write_case(path, vol, truth)
+
+
+def write_case(path, vol: Volume, truth: dict):
+    """Write a synthetic CT (HU), its truth JSON (stem + .json) and a cardia/pylorus stem.mrk.json (LPS); (path, json)."""
     from StomachUnfoldLib.io import atomic_write_text, write_markups_fiducials, write_volume
 
-    vol, truth = make_phantom(**kwargs)
     path = os.fspath(path)
     stem = path
     for ext in (".nii.gz", ".nrrd", ".nii", ".mha", ".mhd"):

@@ -25,7 +25,6 @@ greater-curvature line (paths go round the cardia or the pylorus end instead of 
 """
 from __future__ import annotations
 
-import json
 import os
 import time
 
@@ -1099,21 +1098,10 @@ def _dome_top(model):
 
 def write_random_stomach(path, seed, size: str = "small", **kw):
     """Write a drawn stomach volume, its truth JSON (stem + .json) and cardia/pylorus stem.mrk.json; (path, json)."""
-    from StomachUnfoldLib.io import atomic_write_text, write_markups_fiducials, write_volume
+    from .phantom import write_case
 
     vol, truth = random_stomach(seed, size, **kw)
-    path = os.fspath(path)
-    stem = path
-    for ext in (".nii.gz", ".nrrd", ".nii", ".mha", ".mhd"):
-        if path.endswith(ext):
-            stem = path[: -len(ext)]
-            break
-    write_volume(vol, path)
-    json_path = stem + ".json"
-    atomic_write_text(json_path, json.dumps(truth, indent=1))
-    write_markups_fiducials(stem + ".mrk.json", {"cardia": np.array(truth["cardia_lps"]),
-                                                  "pylorus": np.array(truth["pylorus_lps"])}, "stomach points")
-    return path, json_path
+    return write_case(path, vol, truth)
 
 
 def make_contact_sheet(path, seeds=(0, 1, 2, 3, 4, 5), size: str = "tiny", hybrids=()):

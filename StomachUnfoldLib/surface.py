@@ -486,8 +486,9 @@ def cut_surface(prep, max_vertices: int = 20000, warnings: list | None = None) -
     return CutSurface(v, f, vn, near, theta, is_copy, end_flag, partner, bnd, Pd, info)
 
 
-def orient_and_scale(uv: np.ndarray, cut: CutSurface, s: float) -> tuple[np.ndarray, float, float]:
-    """Turn a flat map (V,2) so the mucosa faces +k, the cardia->pylorus axis runs along +i and the area is the 3D one.
+def orient_and_scale(uv: np.ndarray, cut: CutSurface, s: float, scale: bool = True) -> tuple[np.ndarray, float, float]:
+    """Turn a flat map (V,2) so the mucosa faces +k and the cardia->pylorus axis runs along +i; with ``scale`` also
+    give it the 3D surface's area (a conformal map's scale is arbitrary; an isometric one's is not).
 
     Returns (uv in mm with one pixel ``s`` of margin, fraction of flipped triangles, surface area in mm^2).
     """
@@ -501,16 +502,17 @@ def orient_and_scale(uv: np.ndarray, cut: CutSurface, s: float) -> tuple[np.ndar
     if np.sum(np.sign(sa) == np.sign(inward)) < 0.5 * len(f):
         uv[:, 1] *= -1.0
         sa = -sa
-    # rotate: cardia-end boundary -> pylorus-end boundary along +i; scale: total area as in 3D
-    end_a = bv[near[bv] <= np.percentile(near[bv], 10)]
-    end_b = bv[near[bv] >= np.percentile(near[bv], 90)]
+    # rotate: cardia-end boundary -> pylorus-end boundary along +i
+    ref = bv if len(bv) else np.arange(len(v))
+    end_a = ref[near[ref] <= np.percentile(near[ref], 10)]
+    end_b = ref[near[ref] >= np.percentile(near[ref], 90)]
     axis = uv[end_b].mean(0) - uv[end_a].mean(0)
     ang = np.arctan2(axis[1], axis[0])
     R = np.array([[np.cos(ang), np.sin(ang)], [-np.sin(ang), np.cos(ang)]])
     uv = uv @ R.T
     area3 = 0.5 * np.linalg.norm(n3, axis=1).sum()
-    area2 = abs(sa.sum())
-    uv *= np.sqrt(area3 / max(area2, 1e-12))
+    if scale:
+        uv *= np.sqrt(area3 / max(abs(sa.sum()), 1e-12))
     flipped = float(np.mean(np.sign(signed_area_2d(uv, f)) != np.sign(inward)))
     uv = uv - uv.min(0) + s  # one pixel of margin
     return uv, flipped, float(area3)

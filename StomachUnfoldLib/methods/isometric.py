@@ -22,8 +22,8 @@ import numpy as np
 from ..correspondence import MapCorrespondence
 from ..errors import AnatomyError, SimulationError
 from ..frontend import timed_stage
-from ..surface import (compact, cut_surface, inner_surface, largest_component, perpendicular, sample_flat_map,
-                       signed_area_2d, smooth_tangents, unit, vertex_normals)
+from ..surface import (compact, cut_surface, inner_surface, largest_component, orient_and_scale, perpendicular,
+                       sample_flat_map, signed_area_2d, smooth_tangents, unit, vertex_normals)
 from . import Method, Unfolding, register
 
 __all__ = ["IsometricFlattening", "arap", "triangle_frames", "cot_laplacian", "stretch_stats", "cut_along_path",
@@ -352,23 +352,8 @@ def orient_rigid(uv: np.ndarray, cut, s: float) -> tuple[np.ndarray, float]:
 
     Returns (uv mm shifted to one pixel ``s`` of margin, fraction of triangles flipped against the mucosa side).
     """
-    v, f, vn, near = cut.v, cut.f, cut.vn, cut.near
-    bv = np.unique(cut.boundary_edges)
-    uv = np.array(uv, float)
-    sa = signed_area_2d(uv, f)
-    n3 = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    inward = -np.sum(n3 * (vn[f[:, 0]] + vn[f[:, 1]] + vn[f[:, 2]]), 1)
-    if np.sum(np.sign(sa) == np.sign(inward)) < 0.5 * len(f):
-        uv[:, 1] *= -1.0
-    ref = bv if len(bv) else np.arange(len(v))
-    end_a = ref[near[ref] <= np.percentile(near[ref], 10)]
-    end_b = ref[near[ref] >= np.percentile(near[ref], 90)]
-    axis = uv[end_b].mean(0) - uv[end_a].mean(0)
-    ang = np.arctan2(axis[1], axis[0])
-    R = np.array([[np.cos(ang), np.sin(ang)], [-np.sin(ang), np.cos(ang)]])
-    uv = uv @ R.T
-    flipped = float(np.mean(np.sign(signed_area_2d(uv, f)) != np.sign(inward)))
-    return uv - uv.min(0) + s, flipped
+    uv, flipped, _ = orient_and_scale(uv, cut, s, scale=False)
+    return uv, flipped
 
 
 def cut_along_path(v: np.ndarray, f: np.ndarray, path: np.ndarray, ends_on_boundary: bool = False
