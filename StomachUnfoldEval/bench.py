@@ -258,7 +258,7 @@ def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None
                 cases.append(Case(f"stomach-{seed}/{m}", src, {}, method=m, group=group))
     if data_dir and os.path.isdir(data_dir) and not quick:
         for name in sorted(os.listdir(data_dir)):
-            if name.endswith(".nii.gz") and "seg" not in name and "DERIVED" not in name:
+            if name.endswith(".nii.gz") and "_seg" not in name and "DERIVED" not in name:
                 src = {"hybrid": 1000 + len(cases) % 7, "ct": os.path.join(data_dir, name), "_cache": cache}
                 for m in FAMILY_METHODS:
                     cases.append(Case(f"hybrid-{name.split('_')[0]}/{m}", src, {}, method=m,
