@@ -6,6 +6,8 @@ import pytest
 
 from StomachUnfoldEval import bench
 
+from conftest import SHARED_DIR
+
 
 def test_quick_stability_bench_reports_explicit_divergence_as_data(tmp_path):
     rows = bench.run_benchmark(str(tmp_path), quick=True, parts=("stability",))
@@ -70,10 +72,10 @@ def test_phantom_set_spans_the_variations():
     assert any("narrow" in n for n in names) and any("noisy" in n for n in names)
 
 
-@pytest.mark.skipif(not os.path.isdir(os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")),
-                    reason="needs ../shared/data")
+@pytest.mark.skipif(not os.path.isdir(os.path.join(SHARED_DIR, "data")),
+                    reason=f"the real CTs are not in {SHARED_DIR}/data (set STOMACHUNFOLD_SHARED)")
 def test_real_cases_are_listed_when_the_data_is_there():
-    d = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
+    d = os.path.join(SHARED_DIR, "data")
     cases = bench._cases(quick=True, full_size=False, data_dir=d, parts=("real",))
     assert {c["group"] for c in cases} == {"real"} and len(cases) >= 1
 

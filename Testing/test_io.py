@@ -8,8 +8,10 @@ from StomachUnfoldLib import io as suio
 from StomachUnfoldLib.errors import InputError, PointError
 from StomachUnfoldLib.geometry import Volume
 
-DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
-need_data = pytest.mark.skipif(not os.path.isdir(DATA), reason="../shared/data (the real CTs) is not beside the checkout")
+from conftest import SHARED_DIR
+
+DATA = os.path.join(SHARED_DIR, "data")
+need_data = pytest.mark.skipif(not os.path.isdir(DATA), reason=f"the real CTs are not in {DATA} (set STOMACHUNFOLD_SHARED)")
 
 
 def _random_volume(direction):
