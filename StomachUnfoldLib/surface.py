@@ -535,6 +535,7 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None):
     if ni * nj > 25_000_000:
         raise SimulationError(f"the flattened surface spans {ni} x {nj} pixels: the conformal map degenerated")
     tri, bary, hits = rasterise(uv, f, (nj, ni), s, progress)
+    tri, bary = _rim(uv, f, tri, bary, s)
     covered = tri >= 0
     depths, k0, nk = depth_axis(s, w)
     tt = tri[covered]
@@ -551,6 +552,36 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None):
     info = {"size_ij": [ni, nj], "depth_samples_k": nk, "spacing_mm": s,
             "param_overlap_pixel_fraction": float((hits > 1).sum() / max(int(covered.sum()), 1))}
     return vol, to_unfolded, to_original, mesh, info
+
+
+def _rim(uv, f, tri, bary, s):
+    """Extend the raster by the pixels just outside the flat map's outline: a pixel whose centre lies outside every
+    triangle but within half a pixel of its neighbour's triangle takes that triangle with clamped barycentrics, so
+    the mucosa reaches the view's edge instead of stopping half a pixel short of it."""
+    covered = tri >= 0
+    if not covered.any():
+        return tri, bary
+    rim = ndimage.binary_dilation(covered) & ~covered
+    if not rim.any():
+        return tri, bary
+    _, (nj_idx, ni_idx) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    jj, ii = np.nonzero(rim)
+    t = tri[nj_idx[jj, ii], ni_idx[jj, ii]]
+    a, b, c = uv[f[t, 0]], uv[f[t, 1]], uv[f[t, 2]]
+    p = np.stack([ii * s, jj * s], 1)
+    den = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    den = np.where(np.abs(den) > 1e-12, den, 1.0)
+    l1 = ((p[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (p[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])) / den
+    l2 = ((b[:, 0] - a[:, 0]) * (p[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (p[:, 0] - a[:, 0])) / den
+    lam = np.stack([1 - l1 - l2, l1, l2], 1)
+    # within half a pixel of the triangle: the clamped point moves at most that far
+    q = np.clip(lam, 0.0, 1.0)
+    q /= np.maximum(q.sum(1, keepdims=True), 1e-12)
+    near = np.linalg.norm(np.einsum("nc,ncx->nx", q, uv[f[t]]) - p, axis=1) <= 0.5 * s
+    tri, bary = tri.copy(), bary.copy()
+    tri[jj[near], ii[near]] = t[near]
+    bary[jj[near], ii[near]] = q[near]
+    return tri, bary
 
 
 def _flat_maps(v, f, vn, uv, tri, bary, s, k0, w):
