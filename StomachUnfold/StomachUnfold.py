@@ -390,16 +390,10 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
         """Scalar volume of the view's area scale (view area / mucosa area; 1 = true) on the unfolded volume's (i, j)
         grid, one slice at the mucosa: shown as a layer over the unfolded volume, it tells where lengths and areas
         measured on the view can be trusted (the worst length scale is in the node attribute and distortion.nrrd)."""
-        from StomachUnfoldLib.geometry import Volume
-        from StomachUnfoldLib.view import first_hit
+        from StomachUnfoldLib.distortion import area_scale_volume
 
         dmap = result.distortion()
-        u = result.unfolded
-        k, _ = first_hit(u)
-        k0 = float(np.median(k[k >= 0])) if (k >= 0).any() else 0.0
-        origin = u.index_to_lps(np.array([[0.0, 0.0, k0]]))[0]
-        area = np.where(dmap.covered, dmap.area_scale, 0.0).astype(np.float32)[None]
-        node = self.volumeNodeFromVolume(Volume(area, u.spacing, origin, u.direction), name)
+        node = self.volumeNodeFromVolume(area_scale_volume(result.unfolded, dmap), name)
         node.SetAttribute("StomachUnfold.distortionOf", unfoldedNode.GetID())
         node.SetAttribute("StomachUnfold.trustedFraction", f"{dmap.summary().get('trusted_fraction', 0.0):.4f}")
         dn = node.GetDisplayNode()

@@ -14,7 +14,8 @@ import numpy as np
 
 from .geometry import Volume
 
-__all__ = ["triangle_stretch", "DistortionMap", "distortion_map", "write_distortion", "TRUST_LIMIT"]
+__all__ = ["triangle_stretch", "DistortionMap", "distortion_map", "write_distortion", "mucosa_slice_origin_lps",
+           "area_scale_volume", "TRUST_LIMIT"]
 
 #: A length on the view within this factor of the truth (10 %) counts as measurable.
 TRUST_LIMIT = 1.10
@@ -113,8 +114,27 @@ def _overlay(view_rgb: np.ndarray, dmap: DistortionMap) -> np.ndarray:
     return (np.clip(out, 0, 1) * 255).astype(np.uint8)
 
 
-def write_distortion(unfolded: Volume, dmap: DistortionMap, nrrd_path: str, png_path: str) -> None:
-    """Write ``distortion.nrrd`` (area scale, worst length scale on the view's grid, one slice) and its PNG overlay."""
+def mucosa_slice_origin_lps(unfolded: Volume) -> np.ndarray:
+    """LPS origin (mm) of the one-slice distortion map: the unfolded volume's corner at its median mucosa height."""
+    from .view import first_hit
+
+    k, _ = first_hit(unfolded)
+    k0 = float(np.median(k[k >= 0])) if (k >= 0).any() else 0.0
+    return unfolded.index_to_lps(np.array([[0.0, 0.0, k0]]))[0]
+
+
+def area_scale_volume(unfolded: Volume, dmap: DistortionMap) -> Volume:
+    """The area scale (0 outside the view) as a one-slice Volume on the unfolded volume's (i, j) grid, LPS mm."""
+    area = np.where(dmap.covered, dmap.area_scale, 0.0).astype(np.float32)[None]
+    return Volume(area, unfolded.spacing, mucosa_slice_origin_lps(unfolded), unfolded.direction)
+
+
+def write_distortion(unfolded: Volume, dmap: DistortionMap, nrrd_path: str, png_path: str,
+                     view_rgb: np.ndarray | None = None) -> None:
+    """Write ``distortion.nrrd`` (area scale, worst length scale on the view's grid, one slice) and its PNG overlay.
+
+    ``view_rgb`` is the shaded view (``view.shade_first_hit``) when the caller has it already.
+    """
     import SimpleITK as sitk
 
     from .view import save_png, shade_first_hit
@@ -124,11 +144,9 @@ def write_distortion(unfolded: Volume, dmap: DistortionMap, nrrd_path: str, png_
     img = sitk.GetImageFromArray(arr[None], isVector=True)
     img.SetSpacing([float(v) for v in unfolded.spacing])
     # the slice lies at the view's median mucosa height, on the unfolded volume's own axes
-    from .view import first_hit
-
-    k, _ = first_hit(unfolded)
-    k0 = float(np.median(k[k >= 0])) if (k >= 0).any() else 0.0
-    img.SetOrigin([float(v) for v in unfolded.index_to_lps(np.array([[0.0, 0.0, k0]]))[0]])
+    img.SetOrigin([float(v) for v in mucosa_slice_origin_lps(unfolded)])
     img.SetDirection([float(v) for v in unfolded.direction.ravel()])
     sitk.WriteImage(img, str(nrrd_path), useCompression=True)
-    save_png(_overlay(shade_first_hit(unfolded), dmap), png_path, unfolded.spacing)
+    if view_rgb is None:
+        view_rgb = shade_first_hit(unfolded)
+    save_png(_overlay(view_rgb, dmap), png_path, unfolded.spacing)

@@ -57,7 +57,7 @@ class UnfoldResult:
         """Write the output files into ``out_dir`` all together or not at all; returns {name: path}."""
         from . import io as suio
         from .distortion import write_distortion
-        from .view import render_view
+        from .view import save_png, shade_first_hit
         from .wall_model import write_vtu
 
         os.makedirs(out_dir, exist_ok=True)
@@ -69,8 +69,9 @@ class UnfoldResult:
                 names[name] = os.path.join(out_dir, name)
                 return os.path.join(tmp, name)
             suio.write_volume(self.unfolded, path("unfolded.nrrd"))
-            render_view(self.unfolded, path("view.png"))
-            write_distortion(self.unfolded, self.distortion(), path("distortion.nrrd"), path("distortion.png"))
+            view = shade_first_hit(self.unfolded)  # shaded once, for the view and its distortion overlay
+            save_png(view, path("view.png"), self.unfolded.spacing)
+            write_distortion(self.unfolded, self.distortion(), path("distortion.nrrd"), path("distortion.png"), view)
             write_vtu(self.mesh.rest_lps, self.mesh.cells, path("model_rest.vtu"))
             write_vtu(self.mesh.unfolded_lps, self.mesh.cells, path("model_unfolded.vtu"))
             suio.write_markups_curve(path("incision.mrk.json"), self.incision_lps, "incision", color=(1.0, 0.3, 0.2))
