@@ -10,16 +10,10 @@ import sys
 import numpy as np
 import pytest
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-if HERE not in sys.path:
-    sys.path.insert(0, HERE)
-import slicer_harness
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+import slicer_harness  # noqa: E402  (Testing/ is on sys.path, as for conftest)
 
-_reason = slicer_harness.skipReason()
-if _reason:
-    pytest.skip(_reason, allow_module_level=True)
-H = slicer_harness.install()
+H = slicer_harness.require()
 from slicer_harness import app as happ
 
 qt, slicer = H.qt, H.slicer

@@ -34,6 +34,16 @@ def skipReason():
     return None
 
 
+def require():
+    """For a test module: skip it (saying why) when the harness cannot run here, else install it; the namespace."""
+    import pytest
+
+    reason = skipReason()
+    if reason:
+        pytest.skip(reason, allow_module_level=True)
+    return install()
+
+
 def install():
     """Put qt/ctk, Slicer's real Python and the module on sys.path and set up slicer.app; returns the namespace."""
     global _installed
