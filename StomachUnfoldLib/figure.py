@@ -240,7 +240,7 @@ def annotate_panel(rgb: np.ndarray, spacing_ij, trusted: np.ndarray, orient: dic
     H = max(1, int(round(nj * sj / px_mm)))
     font = max(11, int(round(W / 36)))
     top, bottom, side = int(2.8 * font), int(3.4 * font), int(1.7 * font)
-    canvas = np.zeros((top + H + bottom, 2 * side + W + side, 3))
+    canvas = np.zeros((top + H + bottom, side + W + int(2.7 * side), 3))
     left = side
     canvas[top:top + H, left:left + W] = np.clip(resize_rgb(rgb, (H, W)), 0, 1)
     labels = {}
@@ -256,11 +256,12 @@ def annotate_panel(rgb: np.ndarray, spacing_ij, trusted: np.ndarray, orient: dic
     mid = orient.get("middle")
     mid_name = (f"{mid} curv." if mid in ("greater", "lesser") else mid) if mid else None
     hs = max(9, int(font * 0.8))
-    labels.update(_strip_labels(canvas, left + W + 1.5 * side, top, H,
+    labels.update(_strip_labels(canvas, left + W + 2.1 * side, top, H,
                                 [("upper_half", orient.get("upper_half"), 0.2), ("middle", mid_name, 0.5),
                                  ("lower_half", orient.get("lower_half"), 0.8)], hs))
     if mid_name:  # ticks where the middle line meets the strip
-        canvas[top + H // 2 - 1:top + H // 2 + 1, left + W + side:left + W + side + side // 3] = 1.0
+        x = int(left + W + 1.6 * side)
+        canvas[top + H // 2 - 1:top + H // 2 + 1, x:x + side // 3] = 1.0
     bar = _scale_bar(canvas, trusted, (top, left, H, W), px_mm, font)
     marks = {}
     if landmarks_ij:
