@@ -110,6 +110,9 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--view-size", type=int, default=None, metavar="PIXELS",
                    help="width in pixels of each panel of view.png, resampled bilinearly (default: the view's own "
                         "width in pixels, at least 512)")
+    u.add_argument("--dicom", action="store_true",
+                   help="also write dicom/: view.png as a DICOM secondary capture and the unfolded volume as a CT "
+                        "series, in the source study (its patient and study identifiers) when the input is DICOM")
     u.add_argument("--quiet", action="store_true", help="no progress bar")
     add_parameter_flags(u)
 
@@ -295,7 +298,12 @@ def _cmd_unfold(args) -> int:
             from StomachUnfoldEval.markers import marker_metrics
 
             result.report["markers"] = marker_metrics(result, markers)
-        result.write(args.output_dir, landmarks_lps=landmarks, view_size=args.view_size)
+        study = None
+        if args.dicom:
+            from .dicom_export import source_study_tags
+
+            study = source_study_tags(args.input, args.series_uid)
+        result.write(args.output_dir, landmarks_lps=landmarks, view_size=args.view_size, dicom_study=study)
         bar("writing", 1.0)
     finally:
         bar.close()

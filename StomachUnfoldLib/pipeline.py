@@ -54,11 +54,14 @@ class UnfoldResult:
     _distortion: object = field(default=None, repr=False)
     _orientation: dict | None = field(default=None, repr=False)
 
-    def write(self, out_dir, landmarks_lps: dict | None = None, view_size: int | None = None) -> dict:
+    def write(self, out_dir, landmarks_lps: dict | None = None, view_size: int | None = None,
+              dicom_study: dict | None = None) -> dict:
         """Write the output files into ``out_dir`` all together or not at all; returns {name: path}.
 
         ``landmarks_lps``: named LPS points (mm) of the CT to map (and mark on the view); ``view_size``: width in
-        pixels of each panel of ``view.png`` (default: the view's own width, at least 512).
+        pixels of each panel of ``view.png`` (default: the view's own width, at least 512); ``dicom_study``: when
+        given (a dict, {} for a new study), also ``dicom/`` with the view as a secondary capture and the unfolded
+        volume as a CT series carrying those patient/study tags (``dicom_export.source_study_tags``).
         """
         from . import io as suio
         from .distortion import write_distortion
@@ -91,12 +94,29 @@ class UnfoldResult:
                                              "unfolded_lps": (np.asarray(v).tolist() if k in ok else None)}
                                          for k, v in mapped.items()}
                 suio.write_markups_fiducials(path("landmarks_unfolded.mrk.json"), ok, "landmarks_unfolded")
+            if dicom_study is not None:
+                self._write_dicom(path("dicom"), os.path.join(tmp, "view.png"), dicom_study)
             suio.atomic_write_text(path("report.json"), self.report.to_json())
             for name, final in names.items():
+                if os.path.isdir(final):
+                    shutil.rmtree(final)
                 os.replace(os.path.join(tmp, name), final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         return names
+
+    def _write_dicom(self, folder: str, view_png: str, study: dict) -> None:
+        """``folder``/view.dcm (secondary capture of view.png) and ``folder``/unfolded/ (CT series), study tags kept."""
+        import SimpleITK as sitk
+
+        from .dicom_export import write_ct_series, write_secondary_capture
+
+        os.makedirs(folder)
+        write_secondary_capture(sitk.GetArrayFromImage(sitk.ReadImage(view_png)), os.path.join(folder, "view.dcm"),
+                                study)
+        write_ct_series(self.unfolded, os.path.join(folder, "unfolded"), study)
+        self.report["dicom"] = {"folder": "dicom", "study_from_source": bool(study),
+                                "patient_id": study.get("0010|0020"), "study_uid": study.get("0020|000d")}
 
     def distortion(self, progress=None):
         """The view's DistortionMap (area and length scale per pixel), computed once (``progress(fraction)``)."""

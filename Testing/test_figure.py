@@ -16,12 +16,14 @@ from StomachUnfoldEval.phantom import write_phantom
 from StomachUnfoldLib import figure
 from StomachUnfoldLib import io as suio
 from StomachUnfoldLib.cli import main
+from StomachUnfoldLib.dicom_export import write_ct_series
 from StomachUnfoldLib.distortion import DistortionMap
 from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldLib.plausibility import plausibility_warnings
 from StomachUnfoldLib.view import shade_first_hit
 
 AIR, WALL, BEAD = -1000, 40, 400
+STUDY = {"0010|0010": "PHANTOM^J", "0010|0020": "PH0042", "0020|000d": "1.2.826.0.1.3680043.2.1125.42"}
 
 
 def flat_wall(spacing=(1.2, 0.8, 1.0), size_mm=(150.0, 90.0), beads_mm=((30.0, 45.0), (100.0, 45.0), (30.0, 75.0))):
@@ -102,8 +104,10 @@ def phantom_run(tmp_path_factory):
     truth = json.load(open(json_path))
     lm = tmp / "markers.mrk.json"
     suio.write_markups_fiducials(str(lm), {str(m["id"]): np.array(m["lps"]) for m in truth["markers"]}, "m")
-    argv = ["unfold", path, "--points", json_path, "-o", str(tmp / "out"), "--landmarks", str(lm),
-            "--view-size", "400", "--quiet"]
+    # the phantom as a DICOM series of a known patient and study, the input of a run with --dicom
+    write_ct_series(suio.read_volume(path), str(tmp / "dicom_in"), STUDY, "phantom")
+    argv = ["unfold", str(tmp / "dicom_in"), "--points", json_path, "-o", str(tmp / "out"), "--landmarks", str(lm),
+            "--view-size", "400", "--dicom", "--quiet"]
     assert main(argv) == 0
     return tmp, truth, json.load(open(tmp / "out" / "report.json")), argv
 
@@ -142,8 +146,9 @@ def test_report_records_and_reproduces_the_run(phantom_run, capsys):
     run = rep["run"]
     assert set(run["versions"]) == {"StomachUnfoldLib", "numpy", "scipy", "SimpleITK", "vtk", "python"}
     assert run["method"] == "isometric" and run["grid_size_voxels"] >= 1 and len(run["cell_mm"]) == 3
-    digest = hashlib.sha256(open(argv[1], "rb").read()).hexdigest()
-    assert run["files"]["input"] == {"path": os.path.abspath(argv[1]), "sha256": digest}
+    assert run["files"]["input"]["path"] == os.path.abspath(argv[1]) and len(run["files"]["input"]["sha256"]) == 64
+    digest = hashlib.sha256(open(argv[3], "rb").read()).hexdigest()
+    assert run["files"]["points"] == {"path": os.path.abspath(argv[3]), "sha256": digest}
     assert rep["markers"]["seen"] >= 11 and rep["markers"]["pairwise_distance_distortion"] < 0.3
     # rerun from the recorded command line (another output folder) gives the same unfolded volume
     again = list(run["argv"][1:])
@@ -158,7 +163,26 @@ def test_report_records_and_reproduces_the_run(phantom_run, capsys):
     assert "%" not in "".join(lines)
     sha = [hashlib.sha256(open(tmp / d / "unfolded.nrrd", "rb").read()).hexdigest() for d in ("out", "again")]
     assert sha[0] == sha[1]
-    assert json.load(open(tmp / "again" / "report.json"))["parameters"] == rep["parameters"]
+    again_rep = json.load(open(tmp / "again" / "report.json"))
+    assert again_rep["parameters"] == rep["parameters"] and again_rep["run"]["files"] == run["files"]
+
+
+def test_dicom_export_joins_the_source_study(phantom_run):
+    tmp, truth, rep, _ = phantom_run
+    vol = suio.read_volume(str(tmp / "out" / "unfolded.nrrd"))
+    back = suio.read_volume(str(tmp / "out" / "dicom" / "unfolded"))
+    assert np.array_equal(np.asarray(back.array), np.asarray(vol.array))
+    assert np.allclose(back.spacing, vol.spacing) and np.allclose(back.origin, vol.origin, atol=1e-3)
+    assert np.allclose(back.direction, vol.direction, atol=1e-5)
+    sc = sitk.ReadImage(str(tmp / "out" / "dicom" / "view.dcm"))
+    assert sitk.GetArrayFromImage(sc).reshape(-1, 3).shape[0] == np.prod(read_png(tmp / "out" / "view.png").shape[:2])
+    first = sorted(os.listdir(tmp / "out" / "dicom" / "unfolded"))[0]
+    ct = sitk.ReadImage(str(tmp / "out" / "dicom" / "unfolded" / first))
+    for img in (sc, ct):
+        for tag, value in STUDY.items():
+            assert img.GetMetaData(tag).strip() == value
+    assert ct.GetMetaData("0020|000e") != sc.GetMetaData("0020|000e")  # two new series
+    assert rep["dicom"]["study_from_source"] and rep["dicom"]["patient_id"] == "PH0042"
 
 
 def test_point_messages(tmp_path, capsys):
