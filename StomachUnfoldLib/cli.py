@@ -280,6 +280,8 @@ def _cmd_unfold(args) -> int:
             raise PointError("give both --cardia R,A,S and --pylorus R,A,S (mm, RAS), or --points file.mrk.json")
         cardia, pylorus = ras_to_lps(parse_point(args.cardia)), ras_to_lps(parse_point(args.pylorus))
     params = UnfoldParameters(**{spec.name: getattr(args, spec.name) for spec in parameter_specs()})
+    if args.view_size is not None and not 64 <= args.view_size <= 8000:
+        raise InputError(f"--view-size is the width of each panel of view.png in pixels, 64 to 8000; got {args.view_size}")
     bar = _Bar(args.quiet)
     try:
         bar.span(0.0, 0.08)("reading the CT", 0.0)

@@ -19,7 +19,7 @@ from StomachUnfoldLib.cli import main
 from StomachUnfoldLib.dicom_export import write_ct_series
 from StomachUnfoldLib.distortion import DistortionMap
 from StomachUnfoldLib.geometry import Volume
-from StomachUnfoldLib.plausibility import plausibility_warnings
+from StomachUnfoldLib.plausibility import failure_regions, plausibility_warnings
 from StomachUnfoldLib.view import shade_first_hit
 
 AIR, WALL, BEAD = -1000, 40, 400
@@ -220,3 +220,15 @@ def test_plausibility_warnings():
     w = plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0,
                               {"grade": "fair", "visible_fraction": 0.6, "failure_parts": 2, "bent_area_fraction": 0.1})
     assert len(w) == 1 and w[0].startswith("grade fair: 40 % of the mucosa hidden, 2 failure parts") and "bent" in w[0]
+    # a 10 x 10 mm hole in the view near its right end, lower half: named with the view's labels
+    vol = flat_wall(spacing=(1.0, 1.0, 1.0), beads_mm=())
+    a = np.asarray(vol.array).copy()
+    a[:, 10:20, 125:135] = AIR
+    vol = vol.with_array(a)
+    orient = {"left": "cardia", "right": "pylorus", "upper_half": "posterior", "lower_half": "anterior"}
+    parts = failure_regions(vol, orient)
+    assert len(parts) == 1 and parts[0]["kind"] == "hole" and parts[0]["area_mm2"] == pytest.approx(100.0)
+    assert parts[0]["where"] == "near the pylorus, anterior half"
+    w = plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, {"grade": "bad", "visible_fraction": 0.4,
+                              "failure_parts": 1}, vol, orient)
+    assert "hole of 100 mm^2 near the pylorus, anterior half" in w[0]
