@@ -118,14 +118,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("phantom", help="write a synthetic CT of a gas-distended stomach with markers")
     p.add_argument("output", help="output volume path (e.g. phantom.nrrd); a .json and .mrk.json go beside it")
-    p.add_argument("--shape", default="j", help="straight, bent, j, twisted, thin_wall or hook (a sharp angular incisure)")
-    p.add_argument("--size", default="small", help="tiny, small, medium or full (512x512x400 at 0.7 mm)")
-    p.add_argument("--spacing", default=None, help="voxel spacing sx,sy,sz in mm")
-    p.add_argument("--wall-thickness-mm", type=float, default=4.0)
-    p.add_argument("--rugae", action="store_true")
-    p.add_argument("--noise-hu", type=float, default=15.0)
-    p.add_argument("--markers", type=int, default=12)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--shape", default="j",
+                   metavar="SHAPE", help="one of straight, bent, j, twisted, thin_wall or hook (a sharp angular "
+                                         "incisure) (default j)")
+    p.add_argument("--size", default="small", metavar="SIZE",
+                   help="tiny (1.8 mm voxels), small (1.2 mm), medium (0.9 mm) or full (512x512x400 at 0.7 mm) "
+                        "(default small)")
+    p.add_argument("--spacing", default=None, metavar="SX,SY,SZ", help="voxel spacing in mm (default: from --size)")
+    p.add_argument("--wall-thickness-mm", type=float, default=4.0, help="stomach wall thickness in mm (default 4)")
+    p.add_argument("--rugae", action="store_true", help="add gastric folds (rugae) to the mucosa")
+    p.add_argument("--noise-hu", type=float, default=15.0, help="Gaussian image noise, standard deviation in HU "
+                                                                  "(default 15)")
+    p.add_argument("--markers", type=int, default=12, help="number of dense marker beads on the mucosa (default 12)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the image noise (default 0)")
     p.add_argument("--flip", action="store_true", help="flipped direction matrix (det = -1)")
     p.add_argument("--random", type=int, default=None, metavar="SEED",
                    help="draw a stomach at random from the anatomical family (fundus dome, side openings, incisure, "
@@ -133,7 +138,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "options are ignored")
 
     b = sub.add_parser("bench", help="run the benchmark and write tables and PNGs")
-    b.add_argument("--output-dir", "-o", default="docs/benchmark")
+    b.add_argument("--output-dir", "-o", default="docs/benchmark", metavar="DIR",
+                   help="folder for results.json, results.md and the charts (default docs/benchmark)")
     b.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
     b.add_argument("--full-size", action="store_true", help="include the 512x512x400 phantom timing and scaling")
     b.add_argument("--scheduler", default=None, help="Dask scheduler address (default: a local cluster)")

@@ -231,7 +231,7 @@ def annotate_panel(rgb: np.ndarray, spacing_ij, trusted: np.ndarray, orient: dic
     ``width_px`` pixels wide with square pixels, its scale bar (mm) and orientation labels.
 
     ``trusted`` (j, i) marks the view's pixels where lengths hold; ``orient`` is :func:`orientation`'s;
-    ``landmarks_ij`` {name: (i, j) continuous view index}. Returns (canvas float RGB 0-1, layout dict, pixels).
+    ``landmarks_ij`` {name: (i, j) continuous view index}. Returns (canvas float RGB 0-1, layout dict in pixels).
     """
     nj, ni = rgb.shape[:2]
     si, sj = float(spacing_ij[0]), float(spacing_ij[1])
