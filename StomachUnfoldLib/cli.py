@@ -6,21 +6,22 @@ Errors print one line ``error: ...`` and exit with status 2; Ctrl-C exits with 1
 from __future__ import annotations
 
 import argparse
-import json
 import os
+import signal
 import sys
 import time
 
-import numpy as np
-
 from .errors import Cancelled, InputError, PointError, StomachUnfoldError
-from .geometry import ras_to_lps
+
+# NumPy and the library are imported inside main()'s try, so a Ctrl-C in the first milliseconds is caught too.
 
 __all__ = ["main", "build_parser", "parse_point"]
 
 
-def parse_point(text: str) -> np.ndarray:
+def parse_point(text: str):
     """Parse ``"R,A,S"`` (mm) into a float array of 3; InputError on anything else."""
+    import numpy as np
+
     try:
         p = np.array([float(v) for v in text.replace(" ", "").split(",")], float)
     except ValueError:
@@ -32,23 +33,19 @@ def parse_point(text: str) -> np.ndarray:
 
 def _points_from_file(path: str):
     """Cardia and pylorus (LPS mm) from a Slicer .mrk.json or a phantom truth .json."""
+    from .geometry import ras_to_lps
+    from .io import cardia_pylorus_from_markups, point3, read_json
+
     if path.endswith(".mrk.json"):
-        from .io import cardia_pylorus_from_markups
-
         return cardia_pylorus_from_markups(path)
-    try:
-        with open(path) as f:
-            data = json.load(f)
-    except (OSError, ValueError) as e:
-        raise InputError(f"cannot read points file {path}: {e}") from None
-    if "markups" in data:
-        from .io import cardia_pylorus_from_markups
-
+    data = read_json(path, "points file")
+    if isinstance(data, dict) and "markups" in data:
         return cardia_pylorus_from_markups(path)
-    if "cardia_lps" in data and "pylorus_lps" in data:
-        return np.array(data["cardia_lps"], float), np.array(data["pylorus_lps"], float)
-    if "cardia_ras" in data and "pylorus_ras" in data:
-        return ras_to_lps(data["cardia_ras"]), ras_to_lps(data["pylorus_ras"])
+    if isinstance(data, dict) and "cardia_lps" in data and "pylorus_lps" in data:
+        return point3(data["cardia_lps"], f"cardia_lps in {path}"), point3(data["pylorus_lps"], f"pylorus_lps in {path}")
+    if isinstance(data, dict) and "cardia_ras" in data and "pylorus_ras" in data:
+        return (ras_to_lps(point3(data["cardia_ras"], f"cardia_ras in {path}")),
+                ras_to_lps(point3(data["pylorus_ras"], f"pylorus_ras in {path}")))
     raise PointError(f"{path} holds no cardia/pylorus points: give a Slicer .mrk.json with control points "
                      "labelled 'cardia' and 'pylorus', or --cardia/--pylorus R,A,S")
 
@@ -123,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
     b.add_argument("--full-size", action="store_true", help="include the 512x512x400 phantom timing and scaling")
     b.add_argument("--scheduler", default=None, help="Dask scheduler address (default: a local cluster)")
-    b.add_argument("--parts", default="shapes,kappa,sweep,stability,resolution,peers,real,scaling,stomachs",
+    b.add_argument("--parts", default=",".join(BENCH_PARTS),
                    help="comma-separated parts to run")
     b.add_argument("--data-dir", default=None, help="folder of the real CTs (default ../shared/data)")
     b.add_argument("--merge", action="store_true",
@@ -146,6 +143,12 @@ class _Bar:
     def __call__(self, stage: str, fraction: float):
         if self.quiet:
             return
+        try:
+            self._draw(stage, fraction)
+        except OSError:  # stderr closed (a pipe whose reader left): the run goes on without a bar
+            self.quiet = True
+
+    def _draw(self, stage: str, fraction: float):
         pct = int(100 * min(max(fraction, 0.0), 1.0))
         t = time.perf_counter() - self.t0
         if self.tty:
@@ -161,15 +164,46 @@ class _Bar:
 
     def close(self):
         if not self.quiet and self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+            try:
+                self.stream.write("\n")
+                self.stream.flush()
+            except OSError:
+                pass
+
+
+def _check_unfold_outputs(args) -> None:
+    """Before any work: the output folder is usable (writable, a folder, a real file system) and no input is an output."""
+    from .io import check_output_folder, check_outputs_spare_inputs
+    from .pipeline import OUTPUT_NAMES
+
+    check_output_folder(args.output_dir)
+    check_outputs_spare_inputs(args.output_dir, OUTPUT_NAMES, [args.input, args.mask, args.points,
+                                                              args.incision_curve, args.landmarks])
+
+
+def _say(text: str, stream) -> None:
+    """Print a line, dropping it when the stream is a closed pipe (``| head``): the outputs are complete by then."""
+    try:
+        print(text, file=stream)
+        stream.flush()
+    except BrokenPipeError:
+        try:  # the interpreter's last flush at exit would raise again
+            os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
+        except (OSError, ValueError):
+            pass
+    except (OSError, ValueError):
+        pass
 
 
 def _cmd_unfold(args) -> int:
-    from .io import read_label_volume, read_markups_points, read_volume
+    import numpy as np
+
+    from .geometry import ras_to_lps
+    from .io import check_output_folder, estimate_output_bytes, read_label_volume, read_markups_points, read_volume
     from .params import parameter_specs
     from .pipeline import UnfoldParameters, unfold
 
+    _check_unfold_outputs(args)
     if args.points:
         cardia, pylorus = _points_from_file(args.points)
         if args.cardia:
@@ -181,7 +215,9 @@ def _cmd_unfold(args) -> int:
             raise PointError("give both --cardia R,A,S and --pylorus R,A,S (mm, RAS), or --points file.mrk.json")
         cardia, pylorus = ras_to_lps(parse_point(args.cardia)), ras_to_lps(parse_point(args.pylorus))
     params = UnfoldParameters(**{spec.name: getattr(args, spec.name) for spec in parameter_specs()})
+    params.validate()
     ct = read_volume(args.input, series_uid=args.series_uid)
+    check_output_folder(args.output_dir, estimate_output_bytes(ct))
     mask = read_label_volume(args.mask, ct, label_value=args.mask_label) if args.mask else None
     curve = None
     if args.incision_curve:
@@ -196,10 +232,10 @@ def _cmd_unfold(args) -> int:
         bar.close()
     r = result.report
     grade = f", grade {r.quality['grade']}" if r.quality else ""
-    print(f"unfolded by {r.method['name']} in {r.seconds['total']:.1f} s{grade} -> "
-          f"{os.path.join(args.output_dir, 'unfolded.nrrd')}")
+    _say(f"unfolded by {r.method['name']} in {r.seconds['total']:.1f} s{grade} -> "
+         f"{os.path.join(args.output_dir, 'unfolded.nrrd')}", sys.stdout)
     for w in r["warnings"]:
-        print(f"warning: {w}", file=sys.stderr)
+        _say(f"warning: {w}", sys.stderr)
     return 0
 
 
@@ -214,7 +250,12 @@ def _evaluation():
 
 
 def _cmd_phantom(args) -> int:
+    from .io import check_output_folder
+
     _evaluation()
+    if os.path.isdir(args.output):
+        raise InputError(f"{args.output} is a folder; give the phantom's file name (e.g. {args.output}/phantom.nrrd)")
+    check_output_folder(os.path.dirname(os.path.abspath(args.output)), 2_000_000)
     from StomachUnfoldEval.phantom import write_phantom
 
     if args.random is not None:
@@ -227,6 +268,8 @@ def _cmd_phantom(args) -> int:
     spacing = None
     if args.spacing:
         spacing = parse_point(args.spacing)
+        if not all(0.1 <= v <= 10.0 for v in spacing):
+            raise InputError(f"--spacing must be three voxel sizes from 0.1 to 10 mm, got {args.spacing}")
     path, json_path = write_phantom(args.output, shape=args.shape, size=args.size, spacing=spacing,
                                     wall_thickness_mm=args.wall_thickness_mm, rugae=args.rugae,
                                     noise_hu=args.noise_hu, n_markers=args.markers, seed=args.seed,
@@ -235,8 +278,20 @@ def _cmd_phantom(args) -> int:
     return 0
 
 
+#: The benchmark's parts (``bench --parts``).
+BENCH_PARTS = ("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling", "stomachs")
+
+
 def _cmd_bench(args) -> int:
+    from .io import check_output_folder
+
     _evaluation()
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    unknown = [p for p in parts if p not in BENCH_PARTS]
+    if unknown or not parts:
+        raise InputError(f"unknown benchmark part {', '.join(unknown) or '(none given)'}; choose from "
+                         f"{', '.join(BENCH_PARTS)}")
+    check_output_folder(args.output_dir)
     from StomachUnfoldEval.bench import replot, run_benchmark
 
     if args.replot:
@@ -251,35 +306,82 @@ def _cmd_bench(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    """Entry point of ``stomach-unfold``; returns the exit status (0 ok, 2 bad input or failure, 130 cancelled)."""
-    parser = build_parser()
-    argv = list(sys.argv[1:] if argv is None else argv)
-    # "--cardia -54.9,27.7,64" would read as an option: glue point values to their flag
+class _Signalled(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (``timeout``, a batch scheduler, ``docker stop``, a closed terminal), raised like Ctrl-C so
+    that every ``finally`` removes what was half-written."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_signal(signum, frame):
+    for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if s is not None:
+            signal.signal(s, signal.SIG_IGN)  # a second signal must not interrupt the clean-up
+    raise _Signalled(signum)
+
+
+def _catch_signals() -> None:
+    """Turn SIGTERM and SIGHUP into _Signalled in the main thread (elsewhere Python cannot set handlers)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if s is not None:
+            signal.signal(s, _on_signal)
+
+
+def _glue_points(argv: list) -> list:
+    """"--cardia -54.9,27.7,64" would read as an option: glue point values to their flag."""
     for flag in ("--cardia", "--pylorus", "--spacing"):
         while flag in argv[:-1]:
             i = argv.index(flag)
             argv[i:i + 2] = [f"{flag}={argv[i + 1]}"]
-    args = parser.parse_args(argv)
+    return argv
+
+
+def main(argv=None) -> int:
+    """Entry point of ``stomach-unfold``; returns the exit status (0 ok, 2 bad input or failure, 130 Ctrl-C,
+    128 + the signal's number on SIGTERM (143) or SIGHUP (129)); no partial output is left on any of them."""
+    previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None}
     try:
+        _catch_signals()
+        args = build_parser().parse_args(_glue_points(list(sys.argv[1:] if argv is None else argv)))
         if args.command == "unfold":
             return _cmd_unfold(args)
         if args.command == "phantom":
             return _cmd_phantom(args)
         return _cmd_bench(args)
+    except _Signalled as e:
+        _say(f"error: stopped by {signal.Signals(e.signum).name}; no output was written (previous outputs are kept)",
+             sys.stderr)
+        return 128 + e.signum
     except KeyboardInterrupt:
-        print("error: cancelled (Ctrl-C); no output was written", file=sys.stderr)
+        _say("error: cancelled (Ctrl-C); no output was written", sys.stderr)
         return 130
     except Cancelled as e:
-        print(f"error: {e}", file=sys.stderr)
+        _say(f"error: {e}", sys.stderr)
         return 130
     except StomachUnfoldError as e:
-        print(f"error: {e}", file=sys.stderr)
+        _say(f"error: {e}", sys.stderr)
         return 2
     except MemoryError:
-        print("error: out of memory; crop the volume or use a larger --grid-size / --output-spacing-mm",
-              file=sys.stderr)
+        _say("error: out of memory; crop the volume or use a larger --grid-size / --output-spacing-mm", sys.stderr)
         return 2
+    except OSError as e:  # a read or write the checks could not foresee (disk removed, quota, permissions)
+        where = f" {e.filename}" if e.filename else ""
+        _say(f"error: cannot access{where}: {e.strerror or e}; check the disk and the folder's permissions",
+             sys.stderr)
+        return 2
+    finally:
+        if argv is not None:  # called as a function (tests, batch): leave the caller's handlers as they were
+            for s, h in previous.items():
+                try:
+                    signal.signal(s, h)
+                except (ValueError, TypeError):
+                    pass
 
 
 if __name__ == "__main__":

@@ -27,7 +27,11 @@ from .params import DEFAULT_CELL_MM, UnfoldParameters
 from .progress import Progress
 from .report import Report
 
-__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "stage_names", "DEFAULT_CELL_MM", "check_volume"]
+__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "OUTPUT_NAMES", "stage_names", "DEFAULT_CELL_MM", "check_volume"]
+
+#: The files a run writes into its output folder (landmarks_unfolded.mrk.json only with landmarks).
+OUTPUT_NAMES = ("unfolded.nrrd", "report.json", "view.png", "distortion.nrrd", "distortion.png", "model_rest.vtu",
+                "model_unfolded.vtu", "incision.mrk.json", "centerline.mrk.json", "landmarks_unfolded.mrk.json")
 
 #: The run's parts and their share of the progress bar.
 STAGES = [("front end", 0.0, 0.24), ("method", 0.24, 0.93), ("quality", 0.93, 1.0)]
@@ -54,7 +58,23 @@ class UnfoldResult:
     _distortion: object = field(default=None, repr=False)
 
     def write(self, out_dir, landmarks_lps: dict | None = None) -> dict:
-        """Write the output files into ``out_dir`` all together or not at all; returns {name: path}."""
+        """Write the output files into ``out_dir`` all together or not at all; returns {name: path}.
+
+        OutputError (nothing written, no staging folder left) when the folder cannot take them (full, read-only).
+        """
+        from .errors import OutputError
+
+        try:
+            return self._write(out_dir, landmarks_lps)
+        except OutputError:
+            raise
+        except OSError as e:  # a full disk, a read-only or vanished folder: nothing half-written is left
+            what = e.strerror or str(e)
+            raise OutputError(f"cannot write the outputs into {out_dir} ({what}); nothing was written: free some "
+                              "space or choose another --output-dir") from None
+
+    def _write(self, out_dir, landmarks_lps):
+        """write() without the error translation: staged in a hidden folder inside ``out_dir``, then renamed."""
         from . import io as suio
         from .distortion import write_distortion
         from .view import save_png, shade_first_hit
