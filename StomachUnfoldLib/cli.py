@@ -5,10 +5,12 @@ Errors print one line ``error: ...`` and exit with status 2; Ctrl-C exits with 1
 """
 from __future__ import annotations
 
-import argparse
 import os
 import signal
 import sys
+
+
+import argparse
 import time
 
 from .errors import Cancelled, InputError, PointError, StomachUnfoldError
@@ -323,11 +325,14 @@ def _on_signal(signum, frame):
 
 
 def _catch_signals() -> None:
-    """Turn SIGTERM and SIGHUP into _Signalled in the main thread (elsewhere Python cannot set handlers)."""
+    """Ctrl-C as KeyboardInterrupt, SIGTERM and SIGHUP as _Signalled, in the main thread (elsewhere Python cannot set
+    handlers); an ignored SIGINT (a background job) stays ignored."""
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         return
+    if signal.getsignal(signal.SIGINT) not in (signal.SIG_IGN, None):  # the package's early handler until here
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
         if s is not None:
             signal.signal(s, _on_signal)
@@ -345,7 +350,8 @@ def _glue_points(argv: list) -> list:
 def main(argv=None) -> int:
     """Entry point of ``stomach-unfold``; returns the exit status (0 ok, 2 bad input or failure, 130 Ctrl-C,
     128 + the signal's number on SIGTERM (143) or SIGHUP (129)); no partial output is left on any of them."""
-    previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None}
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None))
+                if s is not None}
     try:
         _catch_signals()
         args = build_parser().parse_args(_glue_points(list(sys.argv[1:] if argv is None else argv)))

@@ -247,7 +247,7 @@ def point3(value, what: str) -> np.ndarray:
         raise PointError(f"{what} must be a list of three numbers (mm), got {json.dumps(value)[:60]}")
     try:
         p = np.array(value, float).reshape(-1)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise PointError(f"{what} must be a list of three numbers (mm), got {json.dumps(value, default=str)[:60]}") \
             from None
     if p.shape != (3,) or not np.all(np.isfinite(p)) or any(isinstance(v, bool) for v in value):
