@@ -93,18 +93,19 @@ def _check_image(img, source: str) -> None:
 
 
 def itk_reason(error) -> str:
-    """ITK's own description of a read or write failure, without its source-file locations and object addresses."""
-    parts = []
+    """ITK's own description of a read or write failure (its first and most specific lines), without its source-file
+    locations and object addresses."""
+    lines = []
     for line in str(error).splitlines():
         line = line.strip()
         if not line or line.startswith("Exception thrown in SimpleITK") or re.search(r"\.(cxx|h|hxx|txx):\d+:?$", line):
             continue
-        line = re.sub(r"^ITK ERROR:\s*\w+\(0x[0-9a-fA-F]+\):\s*", "", line)
-        line = re.sub(r"^\[\w+\]\s*", "", line)
-        if line and line not in parts:
-            parts.append(line.rstrip(":"))
-    text = "; ".join(parts) or "unknown error"
-    return text if len(text) <= 300 else text[:297] + "..."
+        line = re.sub(r"^(itk::ERROR|ITK ERROR):\s*(\w+\(0x[0-9a-fA-F]+\):\s*)?", "", line)
+        line = re.sub(r"^\[\w+\]\s*", "", line).rstrip(":")
+        if line and (not lines or "trouble" not in line):
+            lines.append(line)
+    text = "; ".join(dict.fromkeys(lines[:1] + lines[-1:])) or "unknown error"
+    return text if len(text) <= 400 else text[:397] + "..."
 
 
 def check_not_truncated(path) -> None:

@@ -167,7 +167,7 @@ def test_a_truncated_nifti_is_refused(tmp_path):
     cut.write_bytes(data[:int(0.92 * len(data))])
     with pytest.raises(InputError, match=r"cut.nii.gz is truncated: it holds \d+ of the \d+ bytes.*export it again"):
         suio.read_volume(cut)
-    raw = tmp_path / "ct.nii"
+    raw = tmp_path / "raw.nii"
     raw.write_bytes(gzip.decompress(data)[:-5000])
     with pytest.raises(InputError, match="truncated"):
         suio.read_volume(raw)
