@@ -18,7 +18,8 @@ from .params import UnfoldParameters
 from .progress import Progress
 
 __all__ = ["Prepared", "prepare", "check_volume", "check_points", "crop_margin_mm", "timed_stage",
-           "available_memory_bytes", "estimate_memory_bytes", "check_incision_curve", "check_mask_region", "SWAP_LIMIT_MM", "FRONT_STAGES"]
+           "available_memory_bytes", "estimate_memory_bytes", "check_incision_curve", "check_mask_region",
+           "estimate_model_bytes", "check_model_memory", "MODEL_BYTES_PER_VERTEX", "SWAP_LIMIT_MM", "FRONT_STAGES"]
 
 #: The cardia lies superior to the pylorus on supine CT; a "cardia" this far (mm) below the "pylorus" is a swap.
 SWAP_LIMIT_MM = 20.0
@@ -119,6 +120,26 @@ def available_memory_bytes() -> int:
 def estimate_memory_bytes(ct: Volume) -> int:
     """Rough peak extra memory (bytes) of a run on this CT: masks and labels over the whole grid, before cropping."""
     return int(ct.array.size * 6)
+
+
+#: Rough working memory (bytes) per vertex of the hexahedral wall model: springs, the sparse system and its factor.
+MODEL_BYTES_PER_VERTEX = 4096
+
+
+def estimate_model_bytes(prep: "Prepared") -> int:
+    """Rough peak memory (bytes) of the hexahedral wall model of ``prep``: about 3.4 vertices per cell of the wall."""
+    steps = np.array(prep.cell_mm) / np.asarray(prep.ct.spacing, float)
+    cells = float(np.count_nonzero(prep.wall)) / max(float(np.prod(np.maximum(np.rint(steps), 1))), 1.0)
+    return int(3.4 * cells * MODEL_BYTES_PER_VERTEX)
+
+
+def check_model_memory(prep: "Prepared") -> None:
+    """InputError before the model is built when the wall model of this cell size cannot fit in the free memory."""
+    need, avail = estimate_model_bytes(prep), available_memory_bytes()
+    if need > 0.8 * avail:
+        raise InputError(f"a wall model of {np.round(prep.cell_mm, 1).tolist()} mm cells needs about "
+                         f"{need / 2**30:.1f} GiB and only {avail / 2**30:.1f} GiB is free; use larger cells "
+                         "(--grid-mm or --grid-size) or crop the CT")
 
 
 def check_volume(ct: Volume) -> list[str]:

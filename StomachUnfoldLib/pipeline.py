@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import __version__
-from .frontend import Prepared, check_volume, prepare, timed_stage
+from .frontend import Prepared, check_model_memory, check_volume, prepare, timed_stage
 from .geometry import Volume, lps_to_ras
 from .methods import Mesh, get_method
 from .params import DEFAULT_CELL_MM, UnfoldParameters
@@ -32,6 +32,9 @@ __all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "OUTPUT_NAMES
 #: The files a run writes into its output folder (landmarks_unfolded.mrk.json only with landmarks).
 OUTPUT_NAMES = ("unfolded.nrrd", "report.json", "view.png", "distortion.nrrd", "distortion.png", "model_rest.vtu",
                 "model_unfolded.vtu", "incision.mrk.json", "centerline.mrk.json", "landmarks_unfolded.mrk.json")
+
+#: The methods that build the hexahedral wall model (its memory is estimated before it is built).
+WALL_MODEL_METHODS = ("massspring", "paper")
 
 #: The run's parts and their share of the progress bar.
 STAGES = [("front end", 0.0, 0.24), ("method", 0.24, 0.93), ("quality", 0.93, 1.0)]
@@ -166,6 +169,8 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     t_all = time.perf_counter()
     prep = prepare(ct, cardia_lps, pylorus_lps, params, mask=mask, incision_curve_lps=incision_curve_lps,
                    progress=prog.sub("front end", *span["front end"]))
+    if method.name in WALL_MODEL_METHODS:
+        check_model_memory(prep)
     out = method.unfold(prep, prog.sub("method", *span["method"]))
     seconds = {**prep.seconds, **out.seconds}
     result = UnfoldResult(unfolded=out.unfolded, report=_report(prep, method, out, seconds),

@@ -272,3 +272,23 @@ def test_phantom_spacing_and_bench_parts_are_checked(capsys, tmp_path):
     rc, err = _cli(["bench", "--parts", "nonsense", "-o", tmp_path / "b"], capsys)
     assert rc == 2 and "unknown benchmark part nonsense" in err[-1]
     assert not os.path.exists(tmp_path / "p.nrrd") and not os.path.exists(tmp_path / "b")
+
+
+def test_the_wall_models_memory_is_estimated_before_it_is_built(phantom, monkeypatch):
+    from StomachUnfoldLib import frontend
+    from StomachUnfoldLib.frontend import FRONT_STAGES, estimate_model_bytes, prepare
+
+    ct, truth = phantom
+    c, p = truth["cardia_lps"], truth["pylorus_lps"]
+    prep = prepare(ct, c, p, UnfoldParameters(method="massspring", grid_size=3))
+    sizes = []
+    for d in (3, 2, 1):
+        prep.params = UnfoldParameters(method="massspring", grid_size=d)
+        sizes.append(estimate_model_bytes(prep))
+    assert sizes[0] < sizes[1] < sizes[2] and sizes[2] > 20 * sizes[0]  # ~1/d**3
+    # a machine where the d = 1 model cannot fit: one vertex costs a 30000th of the free memory
+    monkeypatch.setattr(frontend, "MODEL_BYTES_PER_VERTEX", frontend.available_memory_bytes() // 30000)
+    seen = []
+    with pytest.raises(InputError, match=r"wall model of \[1.8, 1.8, 1.8\] mm cells needs about .* GiB.*--grid-mm"):
+        unfold(ct, c, p, UnfoldParameters(method="massspring", grid_size=1), progress=lambda s, f: seen.append(s))
+    assert set(seen) <= {name for name, _, _ in FRONT_STAGES}
