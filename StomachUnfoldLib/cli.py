@@ -361,8 +361,8 @@ def main(argv=None) -> int:
             return _cmd_phantom(args)
         return _cmd_bench(args)
     except _Signalled as e:
-        _say(f"error: stopped by {signal.Signals(e.signum).name}; no output was written (previous outputs are kept)",
-             sys.stderr)
+        _say(f"error: stopped by {signal.Signals(e.signum).name}; no partial output was left (a previous run's "
+             "outputs are kept unless this run had finished writing)", sys.stderr)
         return 128 + e.signum
     except KeyboardInterrupt:
         _say("error: cancelled (Ctrl-C); no output was written", sys.stderr)

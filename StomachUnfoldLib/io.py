@@ -1,7 +1,7 @@
 """Input and output: CT volumes (NRRD, NIfTI, MHA, DICOM folders), label volumes and Slicer markups files.
 
 Every writer is atomic: it writes a temporary file in the target folder and renames it into place, so a
-failed or cancelled write leaves no partial file. Markups files use Slicer's JSON schema with LPS
+failed or cancelled write leaves no partial file. ``check_output_folder`` checks a folder before a run writes to it. Markups files use Slicer's JSON schema with LPS
 coordinates (Slicer's default for ``.mrk.json``); RAS files are read too.
 """
 from __future__ import annotations
@@ -11,9 +11,9 @@ import gzip
 import json
 import os
 import re
+import secrets
 import shutil
 import struct
-import tempfile
 import zlib
 
 import numpy as np
@@ -38,8 +38,8 @@ def _atomic(path, write):
     base = os.path.basename(path)
     # keep the full extension (e.g. .nii.gz) so that writers pick the right format
     ext = base[base.find("."):] if "." in base else ""
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=ext, dir=folder)
-    os.close(fd)
+    # named first, made by the writer inside the try: an interruption at any point leaves no temporary file
+    tmp = os.path.join(folder, f".tmp-{secrets.token_hex(6)}{ext}")
     try:
         write(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a written file gets the user's usual mode
@@ -435,9 +435,12 @@ def check_output_folder(folder, need_bytes: int = 0) -> str:
     if not os.path.isdir(parent):
         raise OutputError(f"{parent} is a file, so the folder {folder} cannot be made: choose another --output-dir")
     try:
-        fd, probe = tempfile.mkstemp(prefix=".unfold-probe-", dir=parent)
-        os.close(fd)
-        os.remove(probe)
+        probe = os.path.join(parent, f".unfold-probe-{secrets.token_hex(6)}")
+        try:
+            os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+        finally:
+            if os.path.exists(probe):
+                os.remove(probe)
     except OSError as e:
         why = "read-only" if e.errno in (errno.EROFS, errno.EACCES, errno.EPERM) else e.strerror
         raise OutputError(f"cannot write into {parent} ({why}): choose a writable --output-dir") from None

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import os
 import resource
+import secrets
 import shutil
-import tempfile
+import signal
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,7 +29,7 @@ from .params import DEFAULT_CELL_MM, UnfoldParameters
 from .progress import Progress
 from .report import Report
 
-__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "OUTPUT_NAMES", "stage_names", "DEFAULT_CELL_MM", "check_volume"]
+__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "OUTPUT_NAMES", "signals_held", "stage_names", "DEFAULT_CELL_MM", "check_volume"]
 
 #: The files a run writes into its output folder (landmarks_unfolded.mrk.json only with landmarks).
 OUTPUT_NAMES = ("unfolded.nrrd", "report.json", "view.png", "distortion.nrrd", "distortion.png", "model_rest.vtu",
@@ -38,6 +40,20 @@ WALL_MODEL_METHODS = ("massspring", "paper")
 
 #: The run's parts and their share of the progress bar.
 STAGES = [("front end", 0.0, 0.24), ("method", 0.24, 0.93), ("quality", 0.93, 1.0)]
+
+
+@contextmanager
+def signals_held():
+    """Hold SIGINT, SIGTERM and SIGHUP (delivered when the block ends) where the platform allows."""
+    held = {signal.SIGINT, signal.SIGTERM} | ({signal.SIGHUP} if hasattr(signal, "SIGHUP") else set())
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def stage_names(method: str) -> list[str]:
@@ -84,8 +100,10 @@ class UnfoldResult:
         from .wall_model import write_vtu
 
         os.makedirs(out_dir, exist_ok=True)
-        tmp = tempfile.mkdtemp(prefix=".unfold-", dir=out_dir)
+        # named first and made inside the try: a signal right after the mkdir still finds it to remove
+        tmp = os.path.join(out_dir, f".unfold-{secrets.token_hex(6)}")
         try:
+            os.mkdir(tmp, 0o700)
             names = {}
 
             def path(name):
@@ -108,8 +126,9 @@ class UnfoldResult:
                                          for k, v in mapped.items()}
                 suio.write_markups_fiducials(path("landmarks_unfolded.mrk.json"), ok, "landmarks_unfolded")
             suio.atomic_write_text(path("report.json"), self.report.to_json())
-            for name, final in names.items():
-                os.replace(os.path.join(tmp, name), final)
+            with signals_held():  # the renames happen all together: a signal waits until they are done
+                for name, final in names.items():
+                    os.replace(os.path.join(tmp, name), final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         return names

@@ -92,6 +92,7 @@ def test_output_folder_problems_are_refused_before_any_work(case, tmp_path, caps
 def test_the_output_folder_may_not_hold_the_input(case, tmp_path, capsys):
     out = tmp_path / "o"
     shutil.copytree(case["prev"], out)
+    shutil.copy(case["ct"], out / "unfolded.nrrd")  # a CT that happens to bear an output's name
     before = _files(out)
     rc, err = _run(["unfold", out / "unfolded.nrrd", "--points", case["pts"], "-o", out, "--quiet"], capsys)
     assert rc == 2 and "holds the input" in err and "would overwrite" in err, err
