@@ -317,6 +317,14 @@ class _Signalled(KeyboardInterrupt):
         self.signum = signum
 
 
+_INTERRUPTED = []  # set by the Ctrl-C handler: an import that C code turned into an ImportError was a Ctrl-C
+
+
+def _on_ctrl_c(signum, frame):
+    _INTERRUPTED.append(signum)
+    raise KeyboardInterrupt
+
+
 def _on_signal(signum, frame):
     for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
         if s is not None:
@@ -332,7 +340,7 @@ def _catch_signals() -> None:
     if threading.current_thread() is not threading.main_thread():
         return
     if signal.getsignal(signal.SIGINT) not in (signal.SIG_IGN, None):  # the package's early handler until here
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, _on_ctrl_c)
     for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
         if s is not None:
             signal.signal(s, _on_signal)
@@ -366,6 +374,11 @@ def main(argv=None) -> int:
         return 128 + e.signum
     except KeyboardInterrupt:
         _say("error: cancelled (Ctrl-C); no output was written", sys.stderr)
+        return 130
+    except ImportError:
+        if not _INTERRUPTED:  # a missing package: its own message
+            raise
+        _say("error: cancelled (Ctrl-C); no output was written", sys.stderr)  # NumPy's import turns it into this
         return 130
     except Cancelled as e:
         _say(f"error: {e}", sys.stderr)
