@@ -116,15 +116,29 @@ def _umount(where):
     subprocess.run(["umount", str(where)], capture_output=True)
 
 
-def test_read_only_folder_and_tiny_disk_are_refused_before_any_work(case, tmp_path, capsys):
-    ro = _mount_tmpfs(tmp_path / "ro", 1024, read_only=True)
+def _read_only_folder(where):
+    """A read-only folder: a read-only tmpfs for root (whom permissions do not stop), else a folder made 0555."""
+    if os.geteuid() == 0:
+        return _mount_tmpfs(where, 1024, read_only=True)
+    os.makedirs(where)
+    os.chmod(where, 0o555)
+    return where
+
+
+def test_a_read_only_folder_is_refused_before_any_work(case, tmp_path, capsys):
+    ro = _read_only_folder(tmp_path / "ro")
     try:
         rc, err = _run(["unfold", case["ct"], "--points", case["pts"], "-o", ro / "out", "--quiet"], capsys)
         assert rc == 2 and "read-only" in err and "writable --output-dir" in err, err
         rc, err = _run(["phantom", ro / "ph.nrrd", "--size", "tiny"], capsys)
         assert rc == 2 and "read-only" in err, err
+        assert os.listdir(ro) == []
     finally:
         _umount(ro)
+        os.chmod(ro, 0o755)
+
+
+def test_a_disk_too_small_for_the_estimated_outputs_is_refused_before_the_run(case, tmp_path, capsys):
     tiny = _mount_tmpfs(tmp_path / "tiny", 64)
     try:
         rc, err = _run(["unfold", case["ct"], "--points", case["pts"], "-o", tiny / "out", "--quiet"], capsys)
