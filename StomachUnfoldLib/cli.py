@@ -1,21 +1,20 @@
 """The ``stomach-unfold`` command line: ``unfold``, ``phantom`` and ``bench``.
 
 Points on the command line are RAS mm (Slicer's frame); the library works in LPS internally.
-Errors print one line ``error: ...`` and exit with status 2; Ctrl-C exits with 130 leaving no partial output.
+Errors print one line ``error: ...`` and exit with status 2; Ctrl-C exits with 130, SIGTERM with 143 and SIGHUP with
+129, leaving no partial output. The output folder is checked before the work starts.
 """
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import sys
-
-
-import argparse
 import time
 
+# only the standard library and the errors here: NumPy and the library are imported inside main()'s try, so a Ctrl-C
+# in the first milliseconds gives the same one line as later
 from .errors import Cancelled, InputError, PointError, StomachUnfoldError
-
-# NumPy and the library are imported inside main()'s try, so a Ctrl-C in the first milliseconds is caught too.
 
 __all__ = ["main", "build_parser", "parse_point"]
 

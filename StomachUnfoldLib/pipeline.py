@@ -29,7 +29,8 @@ from .params import DEFAULT_CELL_MM, UnfoldParameters
 from .progress import Progress
 from .report import Report
 
-__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "OUTPUT_NAMES", "signals_held", "stage_names", "DEFAULT_CELL_MM", "check_volume"]
+__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "OUTPUT_NAMES", "WALL_MODEL_METHODS", "signals_held",
+           "stage_names", "DEFAULT_CELL_MM", "check_volume"]
 
 #: The files a run writes into its output folder (landmarks_unfolded.mrk.json only with landmarks).
 OUTPUT_NAMES = ("unfolded.nrrd", "report.json", "view.png", "distortion.nrrd", "distortion.png", "model_rest.vtu",
