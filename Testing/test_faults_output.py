@@ -100,6 +100,12 @@ def test_the_output_folder_may_not_hold_the_input(case, tmp_path, capsys):
                     "--quiet"], capsys)
     assert rc == 2 and "holds the input" in err, err
     assert _files(out) == before
+    dicom = tmp_path / "dicom"  # a DICOM folder as its own output folder, or one inside it
+    dicom.mkdir()
+    for o in (dicom, dicom / "out"):
+        rc, err = _run(["unfold", dicom, "--points", case["pts"], "-o", o, "--quiet"], capsys)
+        assert rc == 2 and "inside the input folder" in err, err
+    assert os.listdir(dicom) == []
 
 
 def _mount_tmpfs(where, size_kb, read_only=False):
