@@ -292,3 +292,13 @@ def test_the_wall_models_memory_is_estimated_before_it_is_built(phantom, monkeyp
     with pytest.raises(InputError, match=r"wall model of \[1.8, 1.8, 1.8\] mm cells needs about .* GiB.*--grid-mm"):
         unfold(ct, c, p, UnfoldParameters(method="massspring", grid_size=1), progress=lambda s, f: seen.append(s))
     assert set(seen) <= {name for name, _, _ in FRONT_STAGES}
+
+
+def test_the_real_totalsegmentator_map_is_refused_without_its_label():
+    from conftest import REAL_CT_NAME, REAL_SEG_NAME, shared_file
+
+    ct = suio.read_volume(shared_file(REAL_CT_NAME))
+    seg = shared_file(REAL_SEG_NAME)
+    with pytest.raises(InputError, match=r"holds \d\d labels \(.*6: 1\d\d.\d mL.*--mask-label"):
+        suio.read_label_volume(seg, ct)
+    assert suio.read_label_volume(seg, ct, label_value=6).any()

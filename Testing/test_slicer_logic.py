@@ -310,3 +310,17 @@ def test_points_that_are_not_three_numbers_give_a_clear_error(env, bad):
     with pytest.raises(ValueError, match="cardiaRAS must be three finite numbers"):
         logic.unfold(vol, bad, pylorus, **RUN)
     assert _scene_state(scene) == state
+
+
+def test_a_point_not_placed_is_not_used(env):
+    logic, pts = env["logic"], env["pts"]
+    p = [0.0, 0.0, 0.0]
+    pts.GetNthControlPointPosition(0, p)
+    label = pts.GetNthControlPointLabel(0)
+    pts.UnsetNthControlPointPosition(0)
+    try:
+        with pytest.raises(ValueError, match=label):
+            logic.pointsFromMarkups(pts)
+    finally:
+        pts.SetNthControlPointPosition(0, *p)
+    assert np.allclose(logic.pointsFromMarkups(pts)[0 if label == "cardia" else 1], p)
