@@ -123,10 +123,10 @@ def check_not_truncated(path) -> None:
     if len(head) < 348:
         raise InputError(f"{path} is truncated ({len(head)} bytes, shorter than a NIfTI header); export it again")
     for order in "<>":
-        if struct.unpack(order + "i", head[:4])[0] in (348, 540):
+        if struct.unpack(order + "i", head[:4])[0] == 348:
             break
     else:
-        return  # not a NIfTI-1 header: ITK reports it
+        return  # not a NIfTI-1 header (NIfTI-2, or damaged): ITK reads or reports it
     dims = struct.unpack(order + "8h", head[40:56])
     bitpix = struct.unpack(order + "h", head[72:74])[0]
     offset = int(struct.unpack(order + "f", head[108:112])[0])
