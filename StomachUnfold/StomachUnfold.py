@@ -122,6 +122,7 @@ class StomachUnfoldParameterNode:
     springStiffness: Annotated[float, WithinRange(0.01, 100.0)] = 1.0
     damping: Annotated[float, WithinRange(0.0, 100.0)] = 0.5
     maxIterations: Annotated[int, WithinRange(1, 10000)] = 300
+    maskSegmentId: str = ""  # the stomach's segment of a segmentation mask ("": its only visible segment)
     outputVolume: vtkMRMLScalarVolumeNode
     ctFindings: vtkMRMLMarkupsFiducialNode
     unfoldedFindings: vtkMRMLMarkupsFiducialNode
@@ -272,11 +273,13 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
                                "which is which)").format(labels=" / ".join(missing), name=pointsNode.GetName()))
         return found["cardia"], found["pylorus"]
 
-    def maskFromNode(self, maskNode, referenceVolume):
+    def maskFromNode(self, maskNode, referenceVolume, segmentId=None):
         """Bool stomach mask on the reference Volume's grid from a label map volume or a segmentation node.
 
-        A segmentation is exported to a temporary label map; every node the export adds to the scene (the
-        label map, its display node, a colour table) is removed again.
+        Of a segmentation, the segment ``segmentId`` is used, else its one visible segment; several visible
+        segments and none chosen, no segment, or an empty one give a ValueError saying what to do. The export goes
+        through a temporary label map; every node it adds to the scene (the label map, its display node, a colour
+        table) is removed again, also on error.
         """
         from StomachUnfoldLib.io import read_label_volume
 
@@ -284,11 +287,17 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
             return None
         scene = self._scene()
         if maskNode.IsA("vtkMRMLSegmentationNode"):
+            chosen = self._maskSegment(maskNode, segmentId)
             before = {scene.GetNthNode(i).GetID() for i in range(scene.GetNumberOfNodes())}
             try:
                 tmp = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode")
-                if not slicer.vtkSlicerSegmentationsModuleLogic.ExportVisibleSegmentsToLabelmapNode(maskNode, tmp):
-                    raise ValueError(_("could not export {name} to a label map").format(name=maskNode.GetName()))
+                ids = vtk.vtkStringArray()
+                ids.InsertNextValue(chosen)
+                if (not slicer.vtkSlicerSegmentationsModuleLogic.ExportSegmentsToLabelmapNode(maskNode, ids, tmp)
+                        or tmp.GetImageData() is None):
+                    raise ValueError(_("the segment '{segment}' of {name} is empty or has no label map; paint the "
+                                       "stomach into it, or choose another segment").format(
+                        segment=maskNode.GetSegmentation().GetSegment(chosen).GetName(), name=maskNode.GetName()))
                 return read_label_volume(self.volumeFromNode(tmp), referenceVolume)
             finally:
                 added = [scene.GetNthNode(i) for i in range(scene.GetNumberOfNodes())]
@@ -297,6 +306,40 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
         if maskNode.IsA("vtkMRMLScalarVolumeNode"):
             return read_label_volume(self.volumeFromNode(maskNode), referenceVolume)
         raise ValueError(_("{name} is neither a segmentation nor a label map volume").format(name=maskNode.GetName()))
+
+    @staticmethod
+    def _maskSegment(segmentationNode, segmentId=None):
+        """The ID of the stomach segment of a segmentation node: ``segmentId``, else its only visible segment."""
+        seg = segmentationNode.GetSegmentation()
+        ids = [seg.GetNthSegmentID(i) for i in range(seg.GetNumberOfSegments())]
+        name = segmentationNode.GetName()
+        if not ids:
+            raise ValueError(_("{name} holds no segment; segment the stomach first, or clear the mask").format(
+                name=name))
+        listing = ", ".join(f"'{seg.GetSegment(i).GetName()}' ({i})" for i in ids[:12])
+        if segmentId:
+            if segmentId not in ids:
+                raise ValueError(_("{name} has no segment '{segment}'; it holds {listing}").format(
+                    name=name, segment=segmentId, listing=listing))
+            return segmentId
+        display = segmentationNode.GetDisplayNode()
+        visible = [i for i in ids if display is None or display.GetSegmentVisibility(i)]
+        if len(visible) != 1:
+            raise ValueError(_("{name} has {n} visible segments ({listing}); choose the stomach's segment "
+                               "(maskSegmentId) or show only it").format(name=name, n=len(visible), listing=listing))
+        return visible[0]
+
+    @staticmethod
+    def _pointRAS(value, name):
+        """A point as a float array of three finite RAS mm; ValueError naming it otherwise (None, text, 2 values)."""
+        try:
+            p = np.asarray(value, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            p = None
+        if value is None or isinstance(value, str) or p is None or p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ValueError(_("{name} must be three finite numbers R, A, S in mm, got {value!r}").format(
+                name=name, value=value))
+        return p
 
     @staticmethod
     def unfoldParameters(**params):
@@ -312,23 +355,24 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
             raise ValueError(_("unknown parameter: {error}").format(error=e)) from None
 
     # ------------------------------------------------------------------ the run
-    def unfold(self, volumeNode, cardiaRAS, pylorusRAS, maskNode=None, progress=None, **params):
+    def unfold(self, volumeNode, cardiaRAS, pylorusRAS, maskNode=None, progress=None, maskSegmentId=None, **params):
         """Unfold the stomach of ``volumeNode`` between two RAS points (mm); returns a dict of new nodes and the report.
 
         ``params`` are StomachUnfoldLib UnfoldParameters keywords (snake_case) or this module's parameter
         names (method, gridSize: d in voxels, 0 or None for cells of 5.6 mm; kappa, incision, wallThicknessMm,
         beta, gamma, timeStep, springStiffness, damping, maxIterations). ``progress(stage, fraction)`` may
         return False to cancel (raises StomachUnfoldLib.errors.Cancelled). On error or cancel no node is left
-        in the scene and the input nodes are unchanged.
+        in the scene and the input nodes are unchanged. ``maskSegmentId``: the stomach's segment of a segmentation
+        ``maskNode`` (default: its only visible segment).
         """
         from StomachUnfoldLib.geometry import ras_to_lps
         from StomachUnfoldLib.pipeline import unfold
 
+        cardia, pylorus = self._pointRAS(cardiaRAS, "cardiaRAS"), self._pointRAS(pylorusRAS, "pylorusRAS")
         unfoldParams = self.unfoldParameters(**params)
         ct = self.volumeFromNode(volumeNode)
-        mask = self.maskFromNode(maskNode, ct)
-        result = unfold(ct, ras_to_lps(np.asarray(cardiaRAS, float)), ras_to_lps(np.asarray(pylorusRAS, float)),
-                        unfoldParams, mask=mask, progress=progress)
+        mask = self.maskFromNode(maskNode, ct, maskSegmentId)
+        result = unfold(ct, ras_to_lps(cardia), ras_to_lps(pylorus), unfoldParams, mask=mask, progress=progress)
         return self._makeOutputNodes(result, volumeNode.GetName())
 
     def unfoldFromParameterNode(self, parameterNode=None, progress=None):
@@ -338,7 +382,8 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
             raise ValueError(_("select an input CT volume"))
         cardia, pylorus = self.pointsFromMarkups(p.pointsNode)
         params = {name: getattr(p, name) for name in PARAMETER_MAP}
-        out = self.unfold(p.inputVolume, cardia, pylorus, maskNode=p.maskNode, progress=progress, **params)
+        out = self.unfold(p.inputVolume, cardia, pylorus, maskNode=p.maskNode, progress=progress,
+                          maskSegmentId=p.maskSegmentId or None, **params)
         p.outputVolume = out["volume"]
         return out
 

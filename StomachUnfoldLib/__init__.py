@@ -6,8 +6,43 @@ Stages, one module each, in pipeline order:
 destination points), ``newmark`` (Newmark-beta integration and termination), ``unfolded_volume``,
 ``correspondence``; ``pipeline`` chains them and ``cli`` is the ``stomach-unfold`` command.
 """
-from .geometry import Volume, ras_to_lps, lps_to_ras  # noqa: F401
 from .errors import (StomachUnfoldError, InputError, PointError, AnatomyError,  # noqa: F401
-                     SimulationError, Cancelled)
+                     SimulationError, Cancelled, OutputError)
 
 __version__ = "0.1.0"
+
+
+def cancelled_while_starting(signum, frame):
+    """Ctrl-C while the ``stomach-unfold`` command is still importing: its one line and status 130, no traceback."""
+    import sys
+
+    try:
+        sys.stderr.write("error: cancelled (Ctrl-C); no output was written\n")
+    except OSError:
+        pass
+    raise SystemExit(130)
+
+
+def _starting_the_command() -> bool:
+    import os
+    import signal
+    import sys
+
+    return (bool(sys.argv) and os.path.basename(sys.argv[0]) == "stomach-unfold"
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+
+
+if _starting_the_command():  # the command, not a library import: cli.main() takes over from here
+    import signal as _signal
+
+    _signal.signal(_signal.SIGINT, cancelled_while_starting)
+
+
+def __getattr__(name):
+    """``Volume``, ``ras_to_lps`` and ``lps_to_ras`` on first use: importing the package imports no NumPy, so the
+    command line can catch a Ctrl-C from its first milliseconds."""
+    if name in ("Volume", "ras_to_lps", "lps_to_ras"):
+        from . import geometry
+
+        return getattr(geometry, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,26 +1,28 @@
 """The ``stomach-unfold`` command line: ``unfold``, ``phantom`` and ``bench``.
 
 Points on the command line are RAS mm (Slicer's frame); the library works in LPS internally.
-Errors print one line ``error: ...`` and exit with status 2; Ctrl-C exits with 130 leaving no partial output.
+Errors print one line ``error: ...`` and exit with status 2; Ctrl-C exits with 130, SIGTERM with 143 and SIGHUP with
+129, leaving no partial output. The output folder is checked before the work starts.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
+import signal
 import sys
 import time
 
-import numpy as np
-
+# only the standard library and the errors here: NumPy and the library are imported inside main()'s try, so a Ctrl-C
+# in the first milliseconds gives the same one line as later
 from .errors import Cancelled, InputError, PointError, StomachUnfoldError
-from .geometry import ras_to_lps
 
 __all__ = ["main", "build_parser", "parse_point"]
 
 
-def parse_point(text: str) -> np.ndarray:
+def parse_point(text: str):
     """Parse ``"R,A,S"`` (mm) into a float array of 3; InputError on anything else."""
+    import numpy as np
+
     try:
         p = np.array([float(v) for v in text.replace(" ", "").split(",")], float)
     except ValueError:
@@ -32,23 +34,19 @@ def parse_point(text: str) -> np.ndarray:
 
 def _points_from_file(path: str):
     """Cardia and pylorus (LPS mm) from a Slicer .mrk.json or a phantom truth .json."""
+    from .geometry import ras_to_lps
+    from .io import cardia_pylorus_from_markups, point3, read_json
+
     if path.endswith(".mrk.json"):
-        from .io import cardia_pylorus_from_markups
-
         return cardia_pylorus_from_markups(path)
-    try:
-        with open(path) as f:
-            data = json.load(f)
-    except (OSError, ValueError) as e:
-        raise InputError(f"cannot read points file {path}: {e}") from None
-    if "markups" in data:
-        from .io import cardia_pylorus_from_markups
-
+    data = read_json(path, "points file")
+    if isinstance(data, dict) and "markups" in data:
         return cardia_pylorus_from_markups(path)
-    if "cardia_lps" in data and "pylorus_lps" in data:
-        return np.array(data["cardia_lps"], float), np.array(data["pylorus_lps"], float)
-    if "cardia_ras" in data and "pylorus_ras" in data:
-        return ras_to_lps(data["cardia_ras"]), ras_to_lps(data["pylorus_ras"])
+    if isinstance(data, dict) and "cardia_lps" in data and "pylorus_lps" in data:
+        return point3(data["cardia_lps"], f"cardia_lps in {path}"), point3(data["pylorus_lps"], f"pylorus_lps in {path}")
+    if isinstance(data, dict) and "cardia_ras" in data and "pylorus_ras" in data:
+        return (ras_to_lps(point3(data["cardia_ras"], f"cardia_ras in {path}")),
+                ras_to_lps(point3(data["pylorus_ras"], f"pylorus_ras in {path}")))
     raise PointError(f"{path} holds no cardia/pylorus points: give a Slicer .mrk.json with control points "
                      "labelled 'cardia' and 'pylorus', or --cardia/--pylorus R,A,S")
 
@@ -143,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
     b.add_argument("--full-size", action="store_true", help="include the 512x512x400 phantom timing and scaling")
     b.add_argument("--scheduler", default=None, help="Dask scheduler address (default: a local cluster)")
-    b.add_argument("--parts", default="shapes,kappa,sweep,stability,resolution,peers,real,scaling,stomachs",
+    b.add_argument("--parts", default=",".join(BENCH_PARTS),
                    help="comma-separated parts to run")
     b.add_argument("--data-dir", default=None, help="folder of the real CTs (default ../shared/data)")
     b.add_argument("--merge", action="store_true",
@@ -200,26 +198,33 @@ class _Bar:
         f = self.lo + (self.hi - self.lo) * min(max(fraction, 0.0), 1.0)
         with self.lock:
             now = time.perf_counter()
-            if stage != self.stage:
-                if not self.tty and self.stage is not None:
-                    self.stream.write(f"{self.stage}: {now - self.t_stage:.1f} s\n")
-                    self.stream.flush()
-                self.stage, self.t_stage = stage, now
-            self.fraction = max(self.fraction, f)
-            if self.tty:
-                self._draw()
+            try:
+                if stage != self.stage:
+                    if not self.tty and self.stage is not None:
+                        self.stream.write(f"{self.stage}: {now - self.t_stage:.1f} s\n")
+                        self.stream.flush()
+                    self.stage, self.t_stage = stage, now
+                self.fraction = max(self.fraction, f)
+                if self.tty:
+                    self._draw()
+            except OSError:  # stderr closed (a pipe whose reader left): the run goes on without a bar
+                self.quiet = True
+                self.done.set()
 
-    def close(self):
+    def close(self, finished: bool = True):
         self.done.set()
         if self.quiet:
             return
         with self.lock:
             now = time.perf_counter()
-            if self.tty:
-                self.stream.write("\n")
-            elif self.stage is not None:
-                self.stream.write(f"{self.stage}: {now - self.t_stage:.1f} s\ntotal: {now - self.t0:.1f} s\n")
-            self.stream.flush()
+            try:
+                if self.tty:
+                    self.stream.write("\n")
+                elif self.stage is not None and finished:  # a failed run: its one error line says why
+                    self.stream.write(f"{self.stage}: {now - self.t_stage:.1f} s\ntotal: {now - self.t0:.1f} s\n")
+                self.stream.flush()
+            except OSError:
+                pass
             self.stage = None
 
 
@@ -257,6 +262,10 @@ def _reproduce(args, argv) -> dict:
 
 def _phantom_markers(path: str):
     """A phantom truth .json's markers {id: LPS mm}, or None for any other points file."""
+    import json
+
+    import numpy as np
+
     if not path or path.endswith(".mrk.json"):
         return None
     try:
@@ -270,11 +279,39 @@ def _phantom_markers(path: str):
     return {str(m["id"]): np.asarray(m["lps"], float) for m in marks if isinstance(m, dict) and "lps" in m}
 
 
+def _check_unfold_outputs(args) -> None:
+    """Before any work: the output folder is usable (writable, a folder, a real file system) and no input is an output."""
+    from .io import check_output_folder, check_outputs_spare_inputs
+    from .pipeline import OUTPUT_NAMES
+
+    check_output_folder(args.output_dir)
+    check_outputs_spare_inputs(args.output_dir, OUTPUT_NAMES, [args.input, args.mask, args.points,
+                                                              args.incision_curve, args.landmarks])
+
+
+def _say(text: str, stream) -> None:
+    """Print a line, dropping it when the stream is a closed pipe (``| head``): the outputs are complete by then."""
+    try:
+        print(text, file=stream)
+        stream.flush()
+    except BrokenPipeError:
+        try:  # the interpreter's last flush at exit would raise again
+            os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
+        except (OSError, ValueError):
+            pass
+    except (OSError, ValueError):
+        pass
+
+
 def _cmd_unfold(args) -> int:
-    from .io import read_label_volume, read_markups_points, read_volume
+    import numpy as np
+
+    from .geometry import ras_to_lps
+    from .io import check_output_folder, estimate_output_bytes, read_label_volume, read_markups_points, read_volume
     from .params import parameter_specs
     from .pipeline import UnfoldParameters, unfold
 
+    _check_unfold_outputs(args)
     if args.points:
         cardia, pylorus = _points_from_file(args.points)
         if args.cardia:
@@ -286,12 +323,15 @@ def _cmd_unfold(args) -> int:
             raise PointError("give both --cardia R,A,S and --pylorus R,A,S (mm, RAS), or --points file.mrk.json")
         cardia, pylorus = ras_to_lps(parse_point(args.cardia)), ras_to_lps(parse_point(args.pylorus))
     params = UnfoldParameters(**{spec.name: getattr(args, spec.name) for spec in parameter_specs()})
+    params.validate()
     if args.view_size is not None and not 64 <= args.view_size <= 8000:
         raise InputError(f"--view-size is the width of each panel of view.png in pixels, 64 to 8000; got {args.view_size}")
     bar = _Bar(args.quiet)
+    finished = False
     try:
         bar.span(0.0, 0.08)("reading the CT", 0.0)
         ct = read_volume(args.input, series_uid=args.series_uid)
+        check_output_folder(args.output_dir, estimate_output_bytes(ct))
         mask = read_label_volume(args.mask, ct, label_value=args.mask_label) if args.mask else None
         bar("reading the CT", 1.0)
         curve = None
@@ -313,14 +353,15 @@ def _cmd_unfold(args) -> int:
             study = source_study_tags(args.input, args.series_uid)
         result.write(args.output_dir, landmarks_lps=landmarks, view_size=args.view_size, dicom_study=study)
         bar("writing", 1.0)
+        finished = True
     finally:
-        bar.close()
+        bar.close(finished)
     r = result.report
     grade = f", grade {r.quality['grade']}" if r.quality else ""
-    print(f"unfolded by {r.method['name']} in {r.seconds['total']:.1f} s{grade} -> "
-          f"{os.path.join(args.output_dir, 'unfolded.nrrd')}")
+    _say(f"unfolded by {r.method['name']} in {r.seconds['total']:.1f} s{grade} -> "
+         f"{os.path.join(args.output_dir, 'unfolded.nrrd')}", sys.stdout)
     for w in r["warnings"]:
-        print(f"warning: {w}", file=sys.stderr)
+        _say(f"warning: {w}", sys.stderr)
     return 0
 
 
@@ -342,7 +383,12 @@ def _evaluation():
 
 
 def _cmd_phantom(args) -> int:
+    from .io import check_output_folder
+
     _evaluation()
+    if os.path.isdir(args.output):
+        raise InputError(f"{args.output} is a folder; give the phantom's file name (e.g. {args.output}/phantom.nrrd)")
+    check_output_folder(os.path.dirname(os.path.abspath(args.output)), 2_000_000)
     from StomachUnfoldEval.phantom import write_phantom
 
     if args.random is not None:
@@ -355,6 +401,8 @@ def _cmd_phantom(args) -> int:
     spacing = None
     if args.spacing:
         spacing = parse_point(args.spacing)
+        if not all(0.1 <= v <= 10.0 for v in spacing):
+            raise InputError(f"--spacing must be three voxel sizes from 0.1 to 10 mm, got {args.spacing}")
     path, json_path = write_phantom(args.output, shape=args.shape, size=args.size, spacing=spacing,
                                     wall_thickness_mm=args.wall_thickness_mm, rugae=args.rugae,
                                     noise_hu=args.noise_hu, n_markers=args.markers, seed=args.seed,
@@ -363,8 +411,20 @@ def _cmd_phantom(args) -> int:
     return 0
 
 
+#: The benchmark's parts (``bench --parts``).
+BENCH_PARTS = ("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling", "stomachs")
+
+
 def _cmd_bench(args) -> int:
+    from .io import check_output_folder
+
     _evaluation()
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    unknown = [p for p in parts if p not in BENCH_PARTS]
+    if unknown or not parts:
+        raise InputError(f"unknown benchmark part {', '.join(unknown) or '(none given)'}; choose from "
+                         f"{', '.join(BENCH_PARTS)}")
+    check_output_folder(args.output_dir)
     from StomachUnfoldEval.bench import replot, run_benchmark
 
     if args.replot:
@@ -401,40 +461,105 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def main(argv=None) -> int:
-    """Entry point of ``stomach-unfold``; returns the exit status (0 ok, 2 bad input or failure, 130 cancelled)."""
-    parser = build_parser()
-    argv = list(sys.argv[1:] if argv is None else argv)
-    # "--cardia -54.9,27.7,64" would read as an option: glue point values to their flag
+class _Signalled(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (``timeout``, a batch scheduler, ``docker stop``, a closed terminal), raised like Ctrl-C so
+    that every ``finally`` removes what was half-written."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+_INTERRUPTED = []  # set by the Ctrl-C handler: an import that C code turned into an ImportError was a Ctrl-C
+
+
+def _on_ctrl_c(signum, frame):
+    _INTERRUPTED.append(signum)
+    raise KeyboardInterrupt
+
+
+def _on_signal(signum, frame):
+    for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if s is not None:
+            signal.signal(s, signal.SIG_IGN)  # a second signal must not interrupt the clean-up
+    raise _Signalled(signum)
+
+
+def _catch_signals() -> None:
+    """Ctrl-C as KeyboardInterrupt, SIGTERM and SIGHUP as _Signalled, in the main thread (elsewhere Python cannot set
+    handlers); an ignored SIGINT (a background job) stays ignored."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    if signal.getsignal(signal.SIGINT) not in (signal.SIG_IGN, None):  # the package's early handler until here
+        signal.signal(signal.SIGINT, _on_ctrl_c)
+    for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if s is not None:
+            signal.signal(s, _on_signal)
+
+
+def _glue_points(argv: list) -> list:
+    """"--cardia -54.9,27.7,64" would read as an option: glue point values to their flag."""
     for flag in ("--cardia", "--pylorus", "--spacing"):
         while flag in argv[:-1]:
             i = argv.index(flag)
             argv[i:i + 2] = [f"{flag}={argv[i + 1]}"]
-    spaced = _spaced_point(argv)
-    if spaced:
-        print(f"error: {spaced}", file=sys.stderr)
-        return 2
-    args = parser.parse_args(argv)
-    args.argv = argv
+    return argv
+
+
+def main(argv=None) -> int:
+    """Entry point of ``stomach-unfold``; returns the exit status (0 ok, 2 bad input or failure, 130 Ctrl-C,
+    128 + the signal's number on SIGTERM (143) or SIGHUP (129)); no partial output is left on any of them."""
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None))
+                if s is not None}
     try:
+        _catch_signals()
+        argv_list = _glue_points(list(sys.argv[1:] if argv is None else argv))
+        spaced = _spaced_point(argv_list)
+        if spaced:
+            _say(f"error: {spaced}", sys.stderr)
+            return 2
+        args = build_parser().parse_args(argv_list)
+        args.argv = argv_list
         if args.command == "unfold":
             return _cmd_unfold(args)
         if args.command == "phantom":
             return _cmd_phantom(args)
         return _cmd_bench(args)
+    except _Signalled as e:
+        _say(f"error: stopped by {signal.Signals(e.signum).name}; no partial output was left (a previous run's "
+             "outputs are kept unless this run had finished writing)", sys.stderr)
+        return 128 + e.signum
     except KeyboardInterrupt:
-        print("error: cancelled (Ctrl-C); no output was written", file=sys.stderr)
+        _say("error: cancelled (Ctrl-C); no output was written", sys.stderr)
+        return 130
+    except ImportError:
+        if not _INTERRUPTED:  # a missing package: its own message
+            raise
+        _say("error: cancelled (Ctrl-C); no output was written", sys.stderr)  # NumPy's import turns it into this
         return 130
     except Cancelled as e:
-        print(f"error: {e}", file=sys.stderr)
+        _say(f"error: {e}", sys.stderr)
         return 130
     except StomachUnfoldError as e:
-        print(f"error: {e}", file=sys.stderr)
+        _say(f"error: {e}", sys.stderr)
         return 2
     except MemoryError:
-        print("error: out of memory; crop the volume or use a larger --grid-size / --output-spacing-mm",
-              file=sys.stderr)
+        _say("error: out of memory; crop the volume or use a larger --grid-size / --output-spacing-mm", sys.stderr)
         return 2
+    except OSError as e:  # a read or write the checks could not foresee (disk removed, quota, permissions)
+        where = f" {e.filename}" if e.filename else ""
+        _say(f"error: cannot access{where}: {e.strerror or e}; check the disk and the folder's permissions",
+             sys.stderr)
+        return 2
+    finally:
+        if argv is not None:  # called as a function (tests, batch): leave the caller's handlers as they were
+            for s, h in previous.items():
+                try:
+                    signal.signal(s, h)
+                except (ValueError, TypeError):
+                    pass
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 """Errors the library raises on bad input or failed runs; each message says what to do next."""
 from __future__ import annotations
 
-__all__ = ["StomachUnfoldError", "InputError", "PointError", "AnatomyError", "SimulationError", "Cancelled"]
+__all__ = ["StomachUnfoldError", "InputError", "PointError", "AnatomyError", "SimulationError", "Cancelled",
+           "OutputError"]
 
 
 class StomachUnfoldError(Exception):
@@ -26,3 +27,7 @@ class SimulationError(StomachUnfoldError):
 
 class Cancelled(StomachUnfoldError):
     """The run was cancelled by the user (progress callback, Cancel button or Ctrl-C)."""
+
+
+class OutputError(StomachUnfoldError, OSError):
+    """The outputs cannot be written: the output folder is missing, not a folder, read-only, full or holds an input."""

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import os
+import re
 import time
 from dataclasses import dataclass, field
 
@@ -17,7 +18,8 @@ from .params import UnfoldParameters
 from .progress import Progress
 
 __all__ = ["Prepared", "prepare", "check_volume", "check_points", "outside_message", "crop_margin_mm", "timed_stage",
-           "available_memory_bytes", "estimate_memory_bytes", "SWAP_LIMIT_MM", "FRONT_STAGES"]
+           "available_memory_bytes", "estimate_memory_bytes", "check_incision_curve", "check_mask_region",
+           "estimate_model_bytes", "check_model_memory", "MODEL_BYTES_PER_VERTEX", "SWAP_LIMIT_MM", "FRONT_STAGES"]
 
 #: The cardia lies superior to the pylorus on supine CT; a "cardia" this far (mm) below the "pylorus" is a swap.
 SWAP_LIMIT_MM = 20.0
@@ -120,6 +122,26 @@ def estimate_memory_bytes(ct: Volume) -> int:
     return int(ct.array.size * 6)
 
 
+#: Rough working memory (bytes) per vertex of the hexahedral wall model: springs, the sparse system and its factor.
+MODEL_BYTES_PER_VERTEX = 4096
+
+
+def estimate_model_bytes(prep: "Prepared") -> int:
+    """Rough peak memory (bytes) of the hexahedral wall model of ``prep``: about 3.4 vertices per cell of the wall."""
+    steps = np.array(prep.cell_mm) / np.asarray(prep.ct.spacing, float)
+    cells = float(np.count_nonzero(prep.wall)) / max(float(np.prod(np.maximum(np.rint(steps), 1))), 1.0)
+    return int(3.4 * cells * MODEL_BYTES_PER_VERTEX)
+
+
+def check_model_memory(prep: "Prepared") -> None:
+    """InputError before the model is built when the wall model of this cell size cannot fit in the free memory."""
+    need, avail = estimate_model_bytes(prep), available_memory_bytes()
+    if need > 0.8 * avail:
+        raise InputError(f"a wall model of {np.round(prep.cell_mm, 1).tolist()} mm cells needs about "
+                         f"{need / 2**30:.1f} GiB and only {avail / 2**30:.1f} GiB is free; use larger cells "
+                         "(--grid-mm or --grid-size) or crop the CT")
+
+
 def check_volume(ct: Volume) -> list[str]:
     """Refuse volumes that cannot be a CT in HU (InputError saying why); return warnings for odd but usable ones."""
     if not isinstance(ct, Volume):
@@ -128,6 +150,12 @@ def check_volume(ct: Volume) -> list[str]:
     warnings = []
     if a.dtype.kind not in "iuf":
         raise InputError(f"the CT must hold numbers (HU), got dtype {a.dtype}")
+    D = np.asarray(ct.direction, float)
+    if not np.allclose(D.T @ D, np.eye(3), atol=1e-4):
+        raise InputError("the volume's axes are sheared (its direction matrix is not orthonormal); resample it onto "
+                         "an orthogonal grid first (Slicer: Resample Scalar/Vector/DWI Volume)")
+    if not (np.all(np.isfinite(ct.spacing)) and np.all(np.asarray(ct.spacing) > 0)):
+        raise InputError(f"the voxel spacing {np.asarray(ct.spacing).tolist()} mm is not positive; fix the header")
     if min(a.shape) < 8:
         raise InputError(f"the volume is only {ct.size} voxels (i, j, k); an abdominal CT with at least 8 voxels "
                          "along each axis is needed")
@@ -142,8 +170,9 @@ def check_volume(ct: Volume) -> list[str]:
     if a.dtype.kind == "f":
         finite = np.isfinite(a)
         if not finite.all():
-            frac = 1.0 - finite.mean()
-            raise InputError(f"{100 * frac:.1f}% of the voxels are NaN or infinite; give a CT with finite HU values")
+            bad = int(finite.size - np.count_nonzero(finite))
+            raise InputError(f"{bad} voxels ({100.0 * bad / finite.size:.2g} %) are NaN or infinite; give a CT with "
+                             "finite HU values")
     lo, hi = float(a.min()), float(a.max())
     if hi - lo < 1e-6:
         raise InputError(f"the volume is constant ({lo:g}); give a CT volume")
@@ -213,7 +242,25 @@ def _lumen(ct, cardia, pylorus, params, mask, report):
     if mask.shape != ct.array.shape:
         raise InputError(f"the stomach mask has shape {mask.shape}, the CT {ct.array.shape}: resample the "
                          "mask onto the CT grid (io.read_label_volume does)")
-    return lumen_from_mask(mask, ct, cardia, pylorus, max_snap_mm=params.max_snap_mm)
+    lumen, info = lumen_from_mask(mask, ct, cardia, pylorus, max_snap_mm=params.max_snap_mm)
+    check_mask_region(lumen, info["volume_ml"])
+    return lumen, info
+
+
+#: No stomach holds more (mL); a larger mask region is a body or whole-volume label.
+MAX_STOMACH_ML = 5000.0
+
+
+def check_mask_region(region: np.ndarray, volume_ml: float) -> None:
+    """AnatomyError when the stomach mask's region reached from the points is no stomach: the whole volume (it
+    touches all six sides of the volume) or over MAX_STOMACH_ML."""
+    from .errors import AnatomyError
+
+    faces = sum(bool(np.take(region, 0, axis=a).any()) + bool(np.take(region, -1, axis=a).any()) for a in range(3))
+    if faces == 6 or volume_ml > MAX_STOMACH_ML:
+        raise AnatomyError(f"the mask given with --mask is no stomach label: the part the points reach holds "
+                           f"{volume_ml:.0f} mL{' and fills the volume to all six sides' if faces == 6 else ''}; "
+                           "give the stomach's label (check --mask and --mask-label)")
 
 
 def _check_centerline(cl, cell_mm) -> list[str]:
@@ -223,6 +270,42 @@ def _check_centerline(cl, cell_mm) -> list[str]:
                          f"stomach's width ({2 * np.median(cl.radius_mm):.0f} mm): both lie in the same part of the "
                          "stomach; place the cardia at the oesophageal end and the pylorus at the duodenal end")
     return []
+
+
+def check_incision_curve(curve_lps, lumen: np.ndarray, crop: Volume, max_mm: float) -> None:
+    """PointError when a user incision curve (LPS mm) has a point farther than ``max_mm`` from the lumen's surface."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    curve = np.asarray(curve_lps, float)
+    if curve.ndim != 2 or curve.shape[1] != 3 or len(curve) < 2 or not np.all(np.isfinite(curve)):
+        raise InputError(f"a user incision curve needs at least two finite 3D points (mm), got shape {curve.shape}")
+    surface = lumen & ~ndimage.binary_erosion(lumen)
+    d, _ = cKDTree(crop.voxel_lps(surface)).query(curve)
+    worst = int(np.argmax(d))
+    if d[worst] > max_mm:
+        raise PointError(f"the incision curve's point {worst + 1} of {len(curve)} (RAS "
+                         f"{np.round(lps_to_ras(curve[worst]), 1).tolist()} mm) lies {d[worst]:.0f} mm from the "
+                         f"stomach wall (at most {max_mm:.0f} mm allowed): draw the curve on this CT's stomach wall")
+
+
+class _AsGiven:
+    """After the swap check exchanged the points, errors name each point as the user gave it (cardia <-> pylorus)."""
+
+    def __init__(self, swapped: bool):
+        self.swapped = swapped
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, value, tb):
+        from .errors import AnatomyError
+
+        if not self.swapped or not isinstance(value, (PointError, AnatomyError)) or not value.args:
+            return False
+        text = re.sub(r"cardia|pylorus", lambda m: "pylorus" if m.group(0) == "cardia" else "cardia", str(value))
+        raise type(value)(f"{text} (points named as given; the swap check had exchanged them, --swap-check false "
+                          "keeps them as given)") from None
 
 
 def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None = None,
@@ -244,7 +327,7 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     warnings = check_volume(ct)
     cardia, pylorus, w = check_points(ct, cardia_lps, pylorus_lps, params.swap_check)
     warnings += w
-    with timed_stage(prog, "air region", seconds, *FRONT_STAGES[0][1:]) as report:
+    with _AsGiven(bool(w)), timed_stage(prog, "air region", seconds, *FRONT_STAGES[0][1:]) as report:
         lumen, info_air = _lumen(ct, cardia, pylorus, params, mask, report)
     warnings += list(info_air.get("warnings", []))
     cell_mm = np.array(grid_steps(ct.spacing, params.grid_voxels(ct.spacing))) * ct.spacing
@@ -255,10 +338,13 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     del lumen
     with timed_stage(prog, "wall region", seconds, *FRONT_STAGES[1][1:]):
         wall = wall_region(lumen_c, crop.spacing, params.wall_thickness_mm)
-    with timed_stage(prog, "centerline", seconds, *FRONT_STAGES[2][1:]) as report:
+    if incision_curve_lps is not None:
+        check_incision_curve(incision_curve_lps, lumen_c, crop, params.wall_thickness_mm + params.max_snap_mm)
+    with _AsGiven(bool(w)), timed_stage(prog, "centerline", seconds, *FRONT_STAGES[2][1:]) as report:
         cl = compute_centerline(lumen_c, crop, cardia, pylorus, step_mm=params.centerline_step_mm,
                                 max_snap_mm=params.max_snap_mm, progress=report)
-    warnings += _check_centerline(cl, cell_mm)
+    with _AsGiven(bool(w)):
+        warnings += _check_centerline(cl, cell_mm)
     with timed_stage(prog, "incision line", seconds, *FRONT_STAGES[3][1:]):
         if incision_curve_lps is not None:
             inc = incision_from_curve(incision_curve_lps, cl)

@@ -116,8 +116,8 @@ class SurfaceParameters(_Group):
 class OutputParameters(_Group):
     """The unfolded volume and the report."""
 
-    output_spacing_mm: float | None = _p(None, "unfolded volume spacing in mm (default: input in-plane spacing)",
-                                         0.0, 100.0, lo_open=True)
+    output_spacing_mm: float | None = _p(None, "unfolded volume spacing in mm (default: input in-plane spacing; "
+                                         "over 5 mm a stomach's view is a few dozen pixels)", 0.0, 5.0, lo_open=True)
     clear_lumen: bool = _p(True, "with a mask: show the lumen contents as air in the unfolded volume")
     quality: bool = _p(True, "compute the automatic quality metrics and grade into the report")
 

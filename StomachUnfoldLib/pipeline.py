@@ -12,25 +12,49 @@ from __future__ import annotations
 
 import os
 import resource
+import secrets
 import shutil
-import tempfile
+import signal
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import __version__
-from .frontend import Prepared, check_volume, prepare, timed_stage
+from .frontend import Prepared, check_model_memory, check_volume, prepare, timed_stage
 from .geometry import Volume, lps_to_ras
 from .methods import Mesh, get_method
 from .params import DEFAULT_CELL_MM, UnfoldParameters
 from .progress import Progress
 from .report import Report
 
-__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "stage_names", "DEFAULT_CELL_MM", "check_volume"]
+__all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "OUTPUT_NAMES", "WALL_MODEL_METHODS", "signals_held",
+           "stage_names", "DEFAULT_CELL_MM", "check_volume"]
+
+#: The files a run writes into its output folder (landmarks_unfolded.mrk.json only with landmarks).
+OUTPUT_NAMES = ("unfolded.nrrd", "report.json", "view.png", "distortion.nrrd", "distortion.png", "model_rest.vtu",
+                "model_unfolded.vtu", "incision.mrk.json", "centerline.mrk.json", "landmarks_unfolded.mrk.json")
+
+#: The methods that build the hexahedral wall model (its memory is estimated before it is built).
+WALL_MODEL_METHODS = ("massspring", "paper")
 
 #: The run's parts and their share of the progress bar.
 STAGES = [("front end", 0.0, 0.24), ("method", 0.24, 0.93), ("quality", 0.93, 1.0)]
+
+
+@contextmanager
+def signals_held():
+    """Hold SIGINT, SIGTERM and SIGHUP (delivered when the block ends) where the platform allows."""
+    held = {signal.SIGINT, signal.SIGTERM} | ({signal.SIGHUP} if hasattr(signal, "SIGHUP") else set())
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def stage_names(method: str) -> list[str]:
@@ -62,7 +86,21 @@ class UnfoldResult:
         pixels of each panel of ``view.png`` (default: the view's own width, at least 512); ``dicom_study``: when
         given (a dict, {} for a new study), also ``dicom/`` with the view as a secondary capture and the unfolded
         volume as a CT series carrying those patient/study tags (``dicom_export.source_study_tags``).
+        OutputError (nothing written, no staging folder left) when the folder cannot take them (full, read-only).
         """
+        from .errors import OutputError
+
+        try:
+            return self._write(out_dir, landmarks_lps, view_size, dicom_study)
+        except OutputError:
+            raise
+        except OSError as e:  # a full disk, a read-only or vanished folder: nothing half-written is left
+            what = e.strerror or str(e)
+            raise OutputError(f"cannot write the outputs into {out_dir} ({what}); nothing was written: free some "
+                              "space or choose another --output-dir") from None
+
+    def _write(self, out_dir, landmarks_lps, view_size=None, dicom_study=None):
+        """write() without the error translation: staged in a hidden folder inside ``out_dir``, then renamed."""
         from . import io as suio
         from .distortion import write_distortion
         from .figure import write_view
@@ -70,8 +108,10 @@ class UnfoldResult:
         from .wall_model import write_vtu
 
         os.makedirs(out_dir, exist_ok=True)
-        tmp = tempfile.mkdtemp(prefix=".unfold-", dir=out_dir)
+        # named first and made inside the try: a signal right after the mkdir still finds it to remove
+        tmp = os.path.join(out_dir, f".unfold-{secrets.token_hex(6)}")
         try:
+            os.mkdir(tmp, 0o700)
             names = {}
 
             def path(name):
@@ -97,10 +137,11 @@ class UnfoldResult:
             if dicom_study is not None:
                 self._write_dicom(path("dicom"), os.path.join(tmp, "view.png"), dicom_study)
             suio.atomic_write_text(path("report.json"), self.report.to_json())
-            for name, final in names.items():
-                if os.path.isdir(final):
-                    shutil.rmtree(final)
-                os.replace(os.path.join(tmp, name), final)
+            with signals_held():  # the renames happen all together: a signal waits until they are done
+                for name, final in names.items():
+                    if os.path.isdir(final):
+                        shutil.rmtree(final)
+                    os.replace(os.path.join(tmp, name), final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         return names
@@ -201,6 +242,8 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     t_all = time.perf_counter()
     prep = prepare(ct, cardia_lps, pylorus_lps, params, mask=mask, incision_curve_lps=incision_curve_lps,
                    progress=prog.sub("front end", *span["front end"]))
+    if method.name in WALL_MODEL_METHODS:
+        check_model_memory(prep)
     out = method.unfold(prep, prog.sub("method", *span["method"]))
     seconds = {**prep.seconds, **out.seconds}
     result = UnfoldResult(unfolded=out.unfolded, report=_report(prep, method, out, seconds),

@@ -299,9 +299,13 @@ def write_vtu(vertices_lps: np.ndarray, hexes: np.ndarray, path: str) -> None:
     """Write a model (hexahedra or triangles; vertices in LPS mm, as Slicer's model files default to) to a .vtu file."""
     from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridWriter  # the submodule alone: `import vtk` costs 0.7 s
 
+    from .io import atomic_write_bytes
+
     writer = vtkXMLUnstructuredGridWriter()
-    writer.SetFileName(str(path))
     writer.SetInputData(model_to_vtk(vertices_lps, hexes))
-    writer.SetDataModeToBinary()
+    writer.SetDataModeToBinary()  # base64 inline: the document is text
+    # written in memory, then to the file by Python: VTK's own file writer crashes the process on a full disk
+    writer.WriteToOutputStringOn()
     if not writer.Write():
         raise OSError(f"could not write {path}")
+    atomic_write_bytes(path, writer.GetOutputString().encode("ascii"))

@@ -258,3 +258,69 @@ def render_view_png(scene, app, vr_logic, volume_node, camera, png, size=(600, 4
     group.SetMRMLDisplayableNode(None)
     rw.Finalize()
     return png
+
+
+def _segmentation(scene, logic, ct, labels, name):
+    """A segmentation node imported from a label array on the CT's grid (one segment per label value)."""
+    lab = logic.volumeNodeFromVolume(ct.with_array(labels.astype(np.uint8)), "lab")
+    lab2 = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "lab2")
+    lab2.SetAndObserveImageData(lab.GetImageData())
+    m = vtk.vtkMatrix4x4()
+    lab.GetIJKToRASMatrix(m)
+    lab2.SetIJKToRASMatrix(m)
+    seg = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
+    assert slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(lab2, seg)
+    seg.CreateDefaultDisplayNodes()
+    for node in (lab, lab2):
+        scene.RemoveNode(node)
+    return seg
+
+
+def test_segmentation_masks_empty_several_or_chosen_segment(env):
+    scene, logic, vol, pts = env["scene"], env["logic"], env["vol"], env["pts"]
+    ct = logic.volumeFromNode(vol)
+    cardia, pylorus = logic.pointsFromMarkups(pts)
+    empty = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "empty")
+    state = _scene_state(scene)
+    with pytest.raises(ValueError, match="empty holds no segment"):
+        logic.unfold(vol, cardia, pylorus, maskNode=empty, **RUN)
+    assert _scene_state(scene) == state
+    gas = ct.array < -500
+    two = _segmentation(scene, logic, ct, gas + 2 * (ct.array > 200), "two")
+    state = _scene_state(scene)
+    with pytest.raises(ValueError, match=r"two has 2 visible segments.*maskSegmentId"):
+        logic.unfold(vol, cardia, pylorus, maskNode=two, **RUN)
+    with pytest.raises(ValueError, match="no segment 'nonsense'"):
+        logic.maskFromNode(two, ct, "nonsense")
+    assert _scene_state(scene) == state
+    first = two.GetSegmentation().GetNthSegmentID(0)
+    assert logic.maskFromNode(two, ct, first).sum() == gas.sum()
+    two.GetDisplayNode().SetSegmentVisibility(two.GetSegmentation().GetNthSegmentID(1), False)
+    assert logic.maskFromNode(two, ct).sum() == gas.sum()  # the one visible segment
+    assert _scene_state(scene) == state
+    for node in (empty, two):
+        scene.RemoveNode(node)
+
+
+@pytest.mark.parametrize("bad", [None, "abc", [1.0, 2.0], [0.0, float("nan"), 1.0]])
+def test_points_that_are_not_three_numbers_give_a_clear_error(env, bad):
+    scene, logic, vol, pts = env["scene"], env["logic"], env["vol"], env["pts"]
+    state = _scene_state(scene)
+    _, pylorus = logic.pointsFromMarkups(pts)
+    with pytest.raises(ValueError, match="cardiaRAS must be three finite numbers"):
+        logic.unfold(vol, bad, pylorus, **RUN)
+    assert _scene_state(scene) == state
+
+
+def test_a_point_not_placed_is_not_used(env):
+    logic, pts = env["logic"], env["pts"]
+    p = [0.0, 0.0, 0.0]
+    pts.GetNthControlPointPosition(0, p)
+    label = pts.GetNthControlPointLabel(0)
+    pts.UnsetNthControlPointPosition(0)
+    try:
+        with pytest.raises(ValueError, match=label):
+            logic.pointsFromMarkups(pts)
+    finally:
+        pts.SetNthControlPointPosition(0, *p)
+    assert np.allclose(logic.pointsFromMarkups(pts)[0 if label == "cardia" else 1], p)
