@@ -49,7 +49,7 @@ OUTPUT_FILES = ("unfolded.nrrd", "report.json", "view.png", "distortion.nrrd", "
 SUMMARY_FIELDS = ("case", "sweep", "status", "grade", "visible_fraction", "seconds", "error", "failure_parts",
                   "overlap_area_fraction", "hole_area_fraction", "bent_area_fraction", "broken_springs_fraction",
                   "inverted_fraction", "area_distortion", "angle_distortion", "trusted_fraction", "crop_voxels",
-                  "peak_memory_mb", "method", "reused", "output")
+                  "peak_memory_mb", "method", "reused", "output", "worker")
 #: Quality figures copied from report.json into a row.
 _QUALITY_FIELDS = ("grade", "visible_fraction", "failure_parts", "overlap_area_fraction", "hole_area_fraction",
                    "bent_area_fraction", "broken_springs_fraction", "inverted_fraction", "area_distortion",
@@ -191,6 +191,7 @@ def expand_cases(cases: list[dict], out_dir, sweep: tuple[str, list[str]] | None
             if value is not None:
                 job["param_text"][sweep[0]] = value
             job["output"] = os.path.join(out_dir, c["case"], *(() if value is None else (value,)))
+            job["folder"] = os.path.relpath(job["output"], out_dir)
             jobs.append(job)
     return jobs
 
@@ -259,12 +260,12 @@ def completed_row(job: dict, record: dict) -> dict | None:
         return None
     if not all(os.path.exists(os.path.join(job["output"], n)) for n in OUTPUT_FILES):
         return None
-    return dict(row, reused=True, output=job["output"])
+    return dict(row, reused=True, output=job["folder"])
 
 
 def _base_row(job: dict) -> dict:
     return {"case": job["case"], "sweep": job.get("sweep") or "", "status": "pending", "error": "",
-            "output": job["output"], "reused": False}
+            "output": job["folder"], "reused": False}
 
 
 def _row_from_report(row: dict, rep, seconds: float) -> dict:
@@ -282,8 +283,11 @@ def run_case(job: dict, record: dict) -> dict:
     from .params import UnfoldParameters
     from .pipeline import unfold
 
+    import socket
+
     t0 = time.perf_counter()
     row = _base_row(job)
+    row["worker"] = f"{socket.gethostname()}:{os.getpid()}"  # the process that ran it (host:pid)
     try:
         try:
             os.remove(os.path.join(job["output"], RECORD_NAME))  # a run cut short leaves no matching record
@@ -472,9 +476,11 @@ _GRADE_COLOURS = {"excellent": (90, 200, 90), "good": (170, 210, 80), "fair": (2
 
 
 def contact_sheet(rows: list[dict], path, tile: int = 220, columns: int | None = None) -> str:
-    """Write a PNG of every case's view.png under its case name and grade (errors as a dark tile); returns path."""
+    """Write a PNG of every case's view.png (``output`` relative to the PNG's folder) under its case name and grade
+    (a failed case as a dark tile with its error); returns the path."""
     from .view import save_png
 
+    root = os.path.dirname(os.path.abspath(path))
     n = max(1, len(rows))
     cols = columns or int(min(8, np.ceil(np.sqrt(n))))
     nrows = int(np.ceil(n / cols))
@@ -483,7 +489,7 @@ def contact_sheet(rows: list[dict], path, tile: int = 220, columns: int | None =
     for idx, r in enumerate(rows):
         y0, x0 = (idx // cols) * (tile + label_h), (idx % cols) * tile
         name = r["case"] + (f" {r['sweep']}" if r.get("sweep") else "")
-        view = os.path.join(r.get("output", ""), "view.png")
+        view = os.path.join(root, r.get("output", ""), "view.png")
         if r.get("status") == "ok" and os.path.exists(view):
             img = _fit(_read_png(view), tile - 4)
             h, w = img.shape[:2]
@@ -495,7 +501,7 @@ def contact_sheet(rows: list[dict], path, tile: int = 220, columns: int | None =
                 status += f", {100 * float(vis):.1f}% visible"
             lines = [(name, (235, 235, 235)), (status, colour)]
         else:
-            err = re.sub(r"/[^\s,:()']*/", "", str(r.get("error") or ""))  # file names without their folders
+            err = re.sub(r"/[^\s,:()']*/", "", str(r.get("error") or ""))  # file names without folders
             lines = [(name, (235, 235, 235)), (str(r.get("status", "?")), (230, 80, 60))]
             lines += [(err[k:k + 34], (200, 200, 200)) for k in range(0, min(len(err), 34 * 6), 34)]
         for line, (text, rgb) in enumerate(lines):
