@@ -181,3 +181,16 @@ def test_local_workers_are_sized_from_the_largest_cases_memory_estimate(tmp_path
     assert lim_big >= 1.25 * 200 * 400 * 400 * 8  # the CT itself and the front end's masks, with headroom
     n3, _ = worker_plan([{"input": big}] * 8, cores=8, available_bytes=int(2.5 * lim_big))
     assert n3 == 2  # as many as the memory allows
+
+
+def test_the_slicer_console_call_runs_a_folder_here_one_case_after_the_other(cohort, tmp_path):
+    from StomachUnfoldLib.batch import manifest_from_folder, run_batch
+
+    cases = manifest_from_folder(cohort)
+    assert [c["case"] for c in cases] == ["bent", "straight"]
+    seen = []
+    rows = run_batch(cases[1:], str(tmp_path / "out"), base_params={"method": "cylindrical"}, contact=False,
+                     progress=lambda stage, fraction: seen.append((stage, fraction)))
+    assert [r["status"] for r in rows] == ["ok"] and rows[0]["worker"].endswith(f":{os.getpid()}")
+    assert seen[-1] == ("cases 1/1 straight", 1.0)
+    assert os.path.exists(tmp_path / "out" / "straight" / "view.png")
