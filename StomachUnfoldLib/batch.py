@@ -35,8 +35,8 @@ from .errors import InputError, StomachUnfoldError
 
 __all__ = ["MANIFEST_COLUMNS", "RECORD_NAME", "SUMMARY_FIELDS", "OUTPUT_FILES", "read_manifest",
            "manifest_from_folder", "parse_sweep", "expand_cases", "file_sha256", "case_record", "completed_row",
-           "run_case", "case_memory_bytes", "worker_plan", "paper_categories", "table1", "table1_markdown", "write_summary",
-           "contact_sheet", "run_batch"]
+           "run_case", "case_memory_bytes", "worker_plan", "WORKER_OVERHEAD_BYTES", "paper_categories", "table1",
+           "table1_markdown", "write_summary", "contact_sheet", "run_batch"]
 
 #: The manifest's own columns; every other column is a parameter override.
 MANIFEST_COLUMNS = ("case", "input", "points", "mask", "mask_label")
@@ -125,7 +125,8 @@ def read_manifest(path) -> list[dict]:
             continue
         name = _check_case_name(row["case"], f"{path} line {n}")
         if name in seen:
-            raise InputError(f"{path} line {n}: the case name {name!r} is used twice; case names name the output folders")
+            raise InputError(f"{path} line {n}: the case name {name!r} is used twice; case names name the output "
+                             "folders")
         seen.add(name)
         case = {"case": name, "params": {}, "param_text": {}}
         for col in ("input", "points", "mask"):
@@ -353,15 +354,19 @@ def case_memory_bytes(path) -> int:
     return int(300 * 2**20 + nbytes * int(np.prod(size)) + estimate_memory_bytes(stand_in))
 
 
+#: A Dask worker's own resident memory (its libraries and bookkeeping), beyond the case it runs (bytes).
+WORKER_OVERHEAD_BYTES = 256 * 2**20
+
+
 def worker_plan(jobs: list[dict], workers: int | None = None, cores: int | None = None,
                 available_bytes: int | None = None) -> tuple[int, int]:
     """(workers, memory limit per worker in bytes) for a local cluster: the largest case's estimate with 25 %
-    headroom per worker, as many workers as the cores, the cases and 90 % of the free memory allow (``workers``
-    fixes their number)."""
+    headroom plus the worker's own memory; as many workers as the cores, the cases and 90 % of the free memory
+    allow (``workers`` fixes their number, at most one per case)."""
     from .frontend import available_memory_bytes
 
     sizes = [case_memory_bytes(j["input"]) for j in jobs if j.get("input") and os.path.exists(j["input"])]
-    limit = int(1.25 * max(sizes + [512 * 2**20]))
+    limit = int(1.25 * max(sizes + [0]) + WORKER_OVERHEAD_BYTES)
     if workers:
         return max(1, min(int(workers), len(jobs))), limit
     avail = available_memory_bytes() if available_bytes is None else available_bytes

@@ -14,8 +14,8 @@ import time
 
 import pytest
 
-from StomachUnfoldLib.batch import (OUTPUT_FILES, RECORD_NAME, parse_sweep, read_manifest, table1, worker_plan,
-                                    write_summary)
+from StomachUnfoldLib.batch import (OUTPUT_FILES, RECORD_NAME, WORKER_OVERHEAD_BYTES, parse_sweep, read_manifest,
+                                    table1, worker_plan, write_summary)
 from StomachUnfoldLib.cli import main
 from StomachUnfoldLib.errors import InputError
 
@@ -178,7 +178,7 @@ def test_local_workers_are_sized_from_the_largest_cases_memory_estimate(tmp_path
     n1, lim_small = worker_plan([{"input": small}] * 4, cores=4, available_bytes=64 * 2**30)
     n2, lim_big = worker_plan([{"input": small}, {"input": big}], cores=4, available_bytes=64 * 2**30)
     assert n1 == 4 and n2 == 2 and lim_big > lim_small
-    assert lim_big >= 1.25 * 200 * 400 * 400 * 8  # the CT itself and the front end's masks, with headroom
+    assert lim_big >= 1.25 * 200 * 400 * 400 * 8 + WORKER_OVERHEAD_BYTES  # the CT, the masks, headroom, the worker
     n3, _ = worker_plan([{"input": big}] * 8, cores=8, available_bytes=int(2.5 * lim_big))
     assert n3 == 2  # as many as the memory allows
 
