@@ -216,6 +216,9 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
+_SHA_CACHE: dict = {}
+
+
 def case_record(job: dict) -> dict:
     """What a case's outputs depend on: its input files (path, sha256), all its parameters, the software version.
 
@@ -232,7 +235,11 @@ def case_record(job: dict) -> dict:
             continue
         if not os.path.exists(p):
             raise InputError(f"{p} does not exist (case {job['case']}, column {role})")
-        inputs[role] = {"path": p, "sha256": file_sha256(p)}
+        st = os.stat(p)
+        key = (p, st.st_mtime_ns, st.st_size)  # a file shared by cases (or sweep values) is read once
+        if key not in _SHA_CACHE or os.path.isdir(p):  # a folder's own mtime misses edits to its files
+            _SHA_CACHE[key] = file_sha256(p)
+        inputs[role] = {"path": p, "sha256": _SHA_CACHE[key]}
     specs = _specs()
     flat = dict(job.get("params", {}))
     flat.update({k: _parse_value(specs[k], v) for k, v in job.get("param_text", {}).items()})
