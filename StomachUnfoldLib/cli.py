@@ -237,13 +237,15 @@ def _dask_executor(args, jobs, stack):
     import logging
 
     workers, limit = worker_plan(jobs, args.workers)
-    stack.enter_context(dask.config.set({"distributed.scheduler.allowed-failures": 0}))
     # the limit only kills a worker that outgrows it (its case becomes an error row): no pausing or spilling,
     # which are for Dask's own data (a paused worker would wait forever for memory a finished case keeps)
+    stack.enter_context(dask.config.set({"distributed.scheduler.allowed-failures": 0,
+                                         "distributed.worker.memory.target": False,
+                                         "distributed.worker.memory.spill": False,
+                                         "distributed.worker.memory.pause": False}))
     cluster = stack.enter_context(LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                                memory_limit=limit, dashboard_address=None,
-                                               silence_logs=logging.ERROR, memory_target_fraction=False,
-                                               memory_spill_fraction=False, memory_pause_fraction=False))
+                                               silence_logs=logging.ERROR))
     client = stack.enter_context(Client(cluster))
     if not args.quiet:
         print(f"batch: local Dask cluster, {workers} workers of {limit / 2**30:.2f} GiB", file=sys.stderr)
