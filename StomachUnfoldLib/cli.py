@@ -244,7 +244,7 @@ def _dask_executor(args, jobs, stack):
                                          "distributed.worker.memory.spill": False,
                                          "distributed.worker.memory.pause": False}))
     cluster = stack.enter_context(LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                               memory_limit=limit, dashboard_address=None,
+                                               memory_limit=limit, dashboard_address=":0",
                                                silence_logs=logging.ERROR))
     client = stack.enter_context(Client(cluster))
     if not args.quiet:
