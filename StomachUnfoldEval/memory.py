@@ -12,7 +12,7 @@ import os
 import shutil
 import tempfile
 
-__all__ = ["MEMORY_SOURCES", "memory_run", "memory_runs", "memory_plot", "memory_markdown"]
+__all__ = ["MEMORY_SOURCES", "library_baseline_mb", "memory_run", "memory_runs", "memory_plot", "memory_markdown"]
 
 #: (name, phantom keywords): CTs of growing size, and at full size stomachs of growing size in the same CT.
 MEMORY_SOURCES = (
@@ -37,6 +37,20 @@ def _rss_mb(key: str = "VmHWM") -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def library_baseline_mb() -> float:
+    """Resident MB of this process after importing what a run imports (NumPy, SciPy, SimpleITK, VTK, the library);
+    call it in a fresh process: the floor under every run's peak."""
+    import importlib
+
+    for name in ("numpy", "scipy.ndimage", "scipy.sparse.linalg", "scipy.sparse.csgraph", "scipy.spatial",
+                 "SimpleITK", "vtkmodules.vtkCommonDataModel", "vtkmodules.vtkFiltersCore", "vtkmodules.vtkIOXML",
+                 "vtkmodules.vtkIOImage", "StomachUnfoldLib.pipeline", "StomachUnfoldLib.quality",
+                 "StomachUnfoldLib.distortion", "StomachUnfoldLib.methods.isometric",
+                 "StomachUnfoldLib.methods.massspring", "StomachUnfoldLib.centerline"):
+        importlib.import_module(name)
+    return _rss_mb("VmRSS")
+
+
 def _write_source(kw: dict, path: str) -> dict:
     from StomachUnfoldLib.io import write_volume
 
@@ -55,7 +69,6 @@ def memory_run(path: str, truth: dict, method: str | None = None) -> dict:
     from StomachUnfoldLib.pipeline import unfold
 
     stages, seen = [], {"stage": None}
-    baseline = _rss_mb("VmRSS")
 
     def progress(stage, fraction):
         if stage != seen["stage"]:
@@ -74,8 +87,7 @@ def memory_run(path: str, truth: dict, method: str | None = None) -> dict:
     finally:
         shutil.rmtree(out, ignore_errors=True)
     q = res.report["quality"] or {}
-    return {"size_ijk": res.report["input"]["size_ijk"], "ct_mb": ct_mb, "baseline_mb": baseline,
-            "after_read_mb": after_read, "peak_before_write_mb": before_write, "peak_memory_mb": _rss_mb(),
+    return {"size_ijk": res.report["input"]["size_ijk"], "ct_mb": ct_mb, "after_read_mb": after_read, "peak_before_write_mb": before_write, "peak_memory_mb": _rss_mb(),
             "stage_peaks_mb": stages, "crop_voxels": res.report["input"]["crop_voxels"],
             "method": res.report["method"]["name"], "seconds": res.report["seconds"]["total"],
             "grade": q.get("grade"), "visible_fraction": q.get("visible_fraction")}
@@ -87,6 +99,7 @@ def memory_runs(sources=MEMORY_SOURCES, method: str | None = None, isolated=None
         from .bench import isolated_call as isolated
     tmp = tempfile.mkdtemp(prefix="su-mem-src-")
     rows = []
+    baseline = isolated(library_baseline_mb)
     try:
         for name, kw in sources:
             path = os.path.join(tmp, name + ".nrrd")
@@ -94,7 +107,7 @@ def memory_runs(sources=MEMORY_SOURCES, method: str | None = None, isolated=None
                    "source": kw}
             try:
                 truth = isolated(_write_source, kw, path)
-                row.update(ok=True, **isolated(memory_run, path, truth, method))
+                row.update(ok=True, baseline_mb=baseline, **isolated(memory_run, path, truth, method))
                 row["ratio_to_ct"] = row["peak_memory_mb"] / row["ct_mb"]
             except Exception as e:  # a failure is a row, so the benchmark finishes
                 row.update(ok=False, error=f"{type(e).__name__}: {e}")
@@ -107,31 +120,37 @@ def memory_runs(sources=MEMORY_SOURCES, method: str | None = None, isolated=None
 
 
 def memory_plot(rows: list[dict], out_dir: str, made: list[str], plt) -> None:
-    """memory.png: peak resident memory against crop voxels, with the CT's size and twice it per CT size."""
+    """memory.png: peak resident memory (MiB) against crop voxels; the largest CT's size, twice it, and the floor."""
     rs = [r for r in rows if r.get("group") == "memory" and r.get("ok")]
     if not rs:
         return
-    fig, ax = plt.subplots(figsize=(8, 5.5))
+    fig, ax = plt.subplots(figsize=(8.5, 5.5))
     cts = sorted({round(r["ct_mb"], 1) for r in rs})
-    colours = dict(zip(cts, ("tab:blue", "tab:green", "tab:orange", "tab:red", "tab:purple")))
+    colours = dict(zip(cts, ("tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:red")))
     for r in rs:
         c = colours.get(round(r["ct_mb"], 1), "k")
-        ax.scatter(r["crop_voxels"], r["peak_memory_mb"], color=c, s=40, zorder=3)
-        ax.annotate(f"{r['name'].split('/')[0]} ({r['peak_memory_mb']:.0f} MB, {r['ratio_to_ct']:.1f}x CT)",
-                    (r["crop_voxels"], r["peak_memory_mb"]), fontsize=7, xytext=(5, -3), textcoords="offset points")
-    for ct in cts:
-        c = colours.get(ct, "k")
-        ax.axhline(2 * ct, color=c, ls="--", lw=1)
-        ax.text(ax.get_xlim()[0], 2 * ct, f" 2x CT ({2 * ct:.0f} MB, target)", color=c, fontsize=7, va="bottom")
-        ax.axhline(ct, color=c, ls=":", lw=1)
+        ax.scatter(r["crop_voxels"], r["peak_memory_mb"], color=c, s=40, zorder=3,
+                   label=f"CT {'x'.join(str(v) for v in r['size_ijk'])} ({r['ct_mb']:.0f} MiB)")
+        ax.annotate(f"{r['name'].split('/')[0]}: {r['peak_memory_mb']:.0f} MiB = {r['ratio_to_ct']:.1f}x its CT",
+                    (r["crop_voxels"], r["peak_memory_mb"]), fontsize=7, xytext=(-10, 7), textcoords="offset points")
+    big = cts[-1]
     base = min(r["baseline_mb"] for r in rs)
-    ax.axhline(base, color="grey", lw=1)
-    ax.text(ax.get_xlim()[0], base, f" interpreter and libraries ({base:.0f} MB)", color="grey", fontsize=7,
-            va="bottom")
+    lines = ((2 * big, "--", f"target: 2x the {big:.0f} MiB CT ({2 * big:.0f} MiB)"),
+             (base + big, ":", f"floor: libraries + that CT ({base + big:.0f} MiB)"),
+             (base, "-", f"interpreter and libraries alone ({base:.0f} MiB)"))
+    for y, ls, text in lines:
+        ax.axhline(y, color="grey" if ls == "-" else colours[big], ls=ls, lw=1)
+        ax.annotate(text, (0.01, y), xycoords=("axes fraction", "data"), fontsize=7, va="bottom",
+                    color="grey" if ls == "-" else colours[big])
+    handles, labels = ax.get_legend_handles_labels()
+    uniq = dict(zip(labels, handles))
+    ax.legend(uniq.values(), uniq.keys(), fontsize=7, loc="lower right")
     ax.set_xscale("log")
+    ax.set_xlim(min(r["crop_voxels"] for r in rs) / 1.6, max(r["crop_voxels"] for r in rs) * 1.6)
+    ax.set_ylim(0, max(max(r["peak_memory_mb"] for r in rs), 2 * big) * 1.12)
     ax.set_xlabel("crop voxels (the stomach's box plus margin)")
-    ax.set_ylabel("peak resident memory of one run, MB (fresh process)")
-    ax.set_title("Memory of one unfold (read, unfold, write) against the stomach's crop; colour: CT size")
+    ax.set_ylabel("peak resident memory of one run, MiB (fresh process)")
+    ax.set_title("Memory of one unfold (read, unfold, write) against the stomach's crop")
     fig.tight_layout()
     fig.savefig(os.path.join(out_dir, "memory.png"), dpi=110)
     plt.close(fig)
@@ -144,8 +163,8 @@ def memory_markdown(rows: list[dict]) -> list[str]:
     if not rs:
         return []
     L = ["## Memory: peak resident memory of one run against the crop (each run alone in a fresh process)\n",
-         "| case | CT voxels | CT MB | crop voxels | peak MB | peak / CT | after imports MB | after read MB | "
-         "peak before writing MB | method | s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+         "| case | CT voxels | CT MiB | crop voxels | peak MiB | peak / CT | libraries alone MiB | after read MiB | "
+         "peak before writing MiB | method | s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rs:
         if not r.get("ok"):
             L.append(f"| {r['name']} | failed: {r.get('error', '')[:80]} | | | | | | | | | |")
