@@ -11,7 +11,9 @@ from StomachUnfoldEval.memory import memory_markdown, memory_plot, memory_runs
 
 
 def test_a_memory_row_has_the_peak_the_ct_and_the_crop_and_is_charted(tmp_path):
-    plt = pytest.importorskip("matplotlib.pyplot", reason="the chart needs matplotlib (the bench extra)")
+    matplotlib = pytest.importorskip("matplotlib", reason="the chart needs matplotlib (the bench extra)")
+    matplotlib.use("Agg")  # as the benchmark does: no GUI backend (another test may have loaded Qt)
+    import matplotlib.pyplot as plt
     rows = memory_runs((("straight-tiny", {"shape": "straight", "size": "tiny"}),), method="cylindrical",
                        isolated=lambda fn, *args: fn(*args))
     (r,) = rows
