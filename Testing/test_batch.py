@@ -194,3 +194,25 @@ def test_the_slicer_console_call_runs_a_folder_here_one_case_after_the_other(coh
     assert [r["status"] for r in rows] == ["ok"] and rows[0]["worker"].endswith(f":{os.getpid()}")
     assert seen[-1] == ("cases 1/1 straight", 1.0)
     assert os.path.exists(tmp_path / "out" / "straight" / "view.png")
+
+
+def test_a_worker_killed_for_memory_is_an_error_row_not_a_stop(cohort, tmp_path):
+    import logging
+
+    import dask
+    from dask.distributed import Client, LocalCluster
+
+    from StomachUnfoldLib.batch import manifest_from_folder, run_batch
+
+    cases = manifest_from_folder(cohort)  # bent, straight
+    config = {"distributed.scheduler.allowed-failures": 0, "distributed.worker.memory.pause": False,
+              "distributed.worker.memory.target": False, "distributed.worker.memory.spill": False,
+              "distributed.worker.memory.monitor-interval": "20ms"}
+    with dask.config.set(config):  # a worker limit below what a run needs: the nanny kills it mid-case
+        with LocalCluster(n_workers=1, threads_per_worker=1, memory_limit="200MiB", dashboard_address=":0",
+                          silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
+            rows = run_batch(cases, str(tmp_path / "out"), executor=client.get_executor(pure=False),
+                             base_params={"method": "cylindrical"}, contact=False)
+    assert [r["status"] for r in rows] == ["error", "error"]
+    assert all(r["error"].startswith("KilledWorker: the worker running it died (killed for memory") for r in rows)
+    assert _summary(str(tmp_path / "out"))["bent"]["status"] == "error"
