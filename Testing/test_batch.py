@@ -178,7 +178,10 @@ def test_local_workers_are_sized_from_the_largest_cases_memory_estimate(tmp_path
     n1, lim_small = worker_plan([{"input": small}] * 4, cores=4, available_bytes=64 * 2**30)
     n2, lim_big = worker_plan([{"input": small}, {"input": big}], cores=4, available_bytes=64 * 2**30)
     assert n1 == 4 and n2 == 2 and lim_big > lim_small
-    assert lim_big >= 1.25 * 200 * 400 * 400 * 8 + WORKER_OVERHEAD_BYTES  # the CT, the masks, headroom, the worker
+    ct_bytes = 200 * 400 * 400 * 2
+    assert lim_big >= 1.25 * 2 * ct_bytes + WORKER_OVERHEAD_BYTES  # the CT, its working memory, headroom, the worker
+    _, lim_mask = worker_plan([{"input": big, "mask": big}], cores=4, available_bytes=64 * 2**30)
+    assert lim_mask > lim_big  # a mask resampled onto the CT grid costs whole-grid masks
     n3, _ = worker_plan([{"input": big}] * 8, cores=8, available_bytes=int(2.5 * lim_big))
     assert n3 == 2  # as many as the memory allows
 
