@@ -387,6 +387,36 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
         p.outputVolume = out["volume"]
         return out
 
+    # ------------------------------------------------------------------ a batch (the command line's `batch`)
+    def unfoldBatch(self, cases, outputDir, progress=None, sweep=None, **params):
+        """Unfold several CTs into ``outputDir/NAME/`` (the command line's output files) and write its summary.
+
+        ``cases``: a folder (every NAME.nrrd / .nii.gz / .mha with a NAME.mrk.json beside it), a manifest .csv,
+        or a list of (volumeNode, pointsNode) pairs of this scene, saved first into ``outputDir/inputs/``. The
+        cases run here one after the other (Slicer has no Dask), done ones are reused on a rerun; ``params``
+        as for :meth:`unfold`; ``progress(stage, fraction)`` is called as cases finish. Returns the summary
+        rows (``status`` ok or error with its message); no node is added to the scene.
+        """
+        import os
+
+        from StomachUnfoldLib.batch import manifest_from_folder, read_manifest, run_batch
+        from StomachUnfoldLib.geometry import ras_to_lps
+        from StomachUnfoldLib.io import write_markups_fiducials, write_volume
+
+        base = self.unfoldParameters(**params).flat()
+        if isinstance(cases, str):
+            jobs = read_manifest(cases) if cases.lower().endswith(".csv") else manifest_from_folder(cases)
+        else:
+            folder = os.path.join(outputDir, "inputs")
+            for volumeNode, pointsNode in cases:
+                name = volumeNode.GetName()
+                cardia, pylorus = self.pointsFromMarkups(pointsNode)
+                write_volume(self.volumeFromNode(volumeNode), os.path.join(folder, name + ".nrrd"))
+                write_markups_fiducials(os.path.join(folder, name + ".mrk.json"),
+                                        {"cardia": ras_to_lps(cardia), "pylorus": ras_to_lps(pylorus)}, name)
+            jobs = manifest_from_folder(folder)
+        return run_batch(jobs, outputDir, sweep=sweep, progress=progress, base_params=base)
+
     def _makeOutputNodes(self, result, baseName):
         """Create the output nodes all together; remove every one of them if any step fails."""
         scene = self._scene()

@@ -17,6 +17,8 @@ import numpy as np
 
 from StomachUnfoldLib.errors import InputError, StomachUnfoldError
 
+from .memory import memory_markdown, memory_plot, memory_runs
+
 __all__ = ["Case", "phantom_set", "run_case", "run_cases", "run_benchmark", "replot", "place_labels", "KAPPAS"]
 
 KAPPAS = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
@@ -293,12 +295,14 @@ def _isolated(fn, *args, **kwargs):
         return ex.submit(fn, *args, **kwargs).result()
 
 
+isolated_call = _isolated  # the public name, for the benchmark's other modules (memory)
+
+
 def _defects(q: dict) -> dict:
-    """The paper's Table 1 categories from the automatic metrics of one view."""
-    return {"good": q.get("grade") in ("excellent", "good"),
-            "overlapping": q.get("overlap_area_fraction", 0) > 0.005 or q.get("inverted_fraction", 0) > 0.05,
-            "bending": q.get("bent_area_fraction", 0) > 0.01 or q.get("bending_plane_rms_mm", 0) > 5.0,
-            "broken": q.get("broken_springs_fraction", 0) > 0.05 or q.get("hole_area_fraction", 0) > 0.005}
+    """The paper's Table 1 categories from the automatic metrics of one view (one definition, the batch's)."""
+    from StomachUnfoldLib.batch import paper_categories
+
+    return paper_categories(q)
 
 
 def floor_seconds(ct_path: str) -> dict:
@@ -566,6 +570,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
         ax.set_title("Full-size CT: where the time goes")
         _save(fig, out_dir, "full_size_stages.png", made)
     _family_plot(ok, out_dir, made, plt)
+    memory_plot(ok, out_dir, made, plt)
     return made
 
 
@@ -712,6 +717,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     table("real", "Real CTs with their stomach labels (not gas-distended)")
     table("peers", "Peers on the same phantoms (the inverted column: wall folded back along the unrolling)")
     L += family_markdown(rows)
+    L += memory_markdown(rows)
     for png in made:
         L.append(f"![{png}]({png})\n")
     return "\n".join(L) + "\n"
@@ -853,6 +859,8 @@ def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_siz
     for case in _serial_cases(quick, full_size, parts):
         rows.append(_isolated(run_case, case, views))
     full = full_size_runs(out_dir) if full_size else None
+    if full_size or "memory" in parts:  # peak memory against crop size, each run alone (docs/benchmark/memory.png)
+        rows += memory_runs()
     meta = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "wall_seconds": time.perf_counter() - t0,
             "quick": quick, "scheduler": scheduler or "LocalCluster"}

@@ -1,4 +1,4 @@
-"""The ``stomach-unfold`` command line: ``unfold``, ``phantom`` and ``bench``.
+"""The ``stomach-unfold`` command line: ``unfold``, ``batch``, ``phantom`` and ``bench``.
 
 Points on the command line are RAS mm (Slicer's frame); the library works in LPS internally.
 Errors print one line ``error: ...`` and exit with status 2; Ctrl-C exits with 130, SIGTERM with 143 and SIGHUP with
@@ -148,6 +148,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace only the rerun rows in OUTPUT_DIR/results.json and keep the others")
     b.add_argument("--replot", action="store_true",
                    help="only redraw the PNGs and results.md from OUTPUT_DIR/results.json (runs nothing)")
+
+    c = sub.add_parser("batch", help="unfold every case of a CSV manifest (on Dask: a local or a given cluster)")
+    c.add_argument("manifest", help="CSV with the header case,input,points[,mask,mask_label][,PARAMETER...]; "
+                                    "paths relative to the manifest")
+    c.add_argument("--output-dir", "-o", required=True, help="folder for OUT/CASE/ outputs and OUT/summary.csv")
+    c.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://HOST:PORT (default: a local "
+                                                    "cluster sized from the cores and the largest case's memory)")
+    c.add_argument("--workers", type=int, default=None, help="local cluster workers (default: from cores and memory)")
+    c.add_argument("--sweep", default=None, metavar="NAME=V1,V2,...",
+                   help="run every case for each value of one parameter into OUT/CASE/VALUE/ (with kappa: Table 1)")
+    c.add_argument("--no-dask", action="store_true", help="run the cases here one after the other")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_parameter_flags(c)
     return ap
 
 
@@ -372,6 +385,67 @@ def _has_evaluation() -> bool:
     return importlib.util.find_spec("StomachUnfoldEval") is not None
 
 
+def _dask_executor(args, jobs, stack):
+    """A concurrent.futures executor on Dask for the batch (None: run here), its clients closed by ``stack``."""
+    from .batch import worker_plan
+
+    try:
+        import dask
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        if args.scheduler:
+            raise InputError("--scheduler needs Dask: pip install 'dask[distributed]'") from None
+        print("note: Dask is not installed; the cases run one after the other", file=sys.stderr)
+        return None
+    if args.scheduler:
+        try:
+            client = stack.enter_context(Client(args.scheduler, timeout="20s"))
+        except (OSError, TimeoutError) as e:
+            raise InputError(f"cannot reach the Dask scheduler at {args.scheduler}: {e}") from None
+        return client.get_executor(pure=False)
+    import logging
+
+    workers, limit = worker_plan(jobs, args.workers)
+    # the limit only kills a worker that outgrows it (its case becomes an error row): no pausing or spilling,
+    # which are for Dask's own data (a paused worker would wait forever for memory a finished case keeps)
+    stack.enter_context(dask.config.set({"distributed.scheduler.allowed-failures": 0,
+                                         "distributed.worker.memory.target": False,
+                                         "distributed.worker.memory.spill": False,
+                                         "distributed.worker.memory.pause": False}))
+    cluster = stack.enter_context(LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                               memory_limit=limit, dashboard_address=":0",
+                                               silence_logs=logging.ERROR))
+    client = stack.enter_context(Client(cluster))
+    if not args.quiet:
+        print(f"batch: local Dask cluster, {workers} workers of {limit / 2**30:.2f} GiB", file=sys.stderr)
+    return client.get_executor(pure=False)
+
+
+def _cmd_batch(args) -> int:
+    import contextlib
+
+    from .batch import parse_sweep, read_manifest, run_batch
+    from .params import parameter_specs
+
+    cases = read_manifest(args.manifest)
+    sweep = parse_sweep(args.sweep)
+    base = {spec.name: getattr(args, spec.name) for spec in parameter_specs()}
+    bar = _Bar(args.quiet)
+    with contextlib.ExitStack() as stack:
+        ex = None if args.no_dask else (lambda jobs: _dask_executor(args, jobs, stack))  # only if a case must run
+        try:
+            rows = run_batch(cases, args.output_dir, sweep=sweep, executor=ex, progress=bar, base_params=base)
+        finally:
+            bar.close()
+    bad = [r for r in rows if r["status"] != "ok"]
+    reused = sum(bool(r.get("reused")) for r in rows)
+    for r in bad:
+        print(f"error: case {r['case']}{' ' + r['sweep'] if r['sweep'] else ''}: {r['error']}", file=sys.stderr)
+    print(f"batch: {len(rows) - len(bad)} of {len(rows)} ok ({reused} reused), {len(bad)} failed -> "
+          f"{os.path.join(args.output_dir, 'summary.csv')}")
+    return 0 if not bad else 1
+
+
 def _evaluation():
     """The evaluation package (phantoms, benchmark), which a Slicer install does not have."""
     try:
@@ -412,7 +486,7 @@ def _cmd_phantom(args) -> int:
 
 
 #: The benchmark's parts (``bench --parts``).
-BENCH_PARTS = ("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling", "stomachs")
+BENCH_PARTS = ("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling", "stomachs", "memory")
 
 
 def _cmd_bench(args) -> int:
@@ -526,6 +600,8 @@ def main(argv=None) -> int:
             return _cmd_unfold(args)
         if args.command == "phantom":
             return _cmd_phantom(args)
+        if args.command == "batch":
+            return _cmd_batch(args)
         return _cmd_bench(args)
     except _Signalled as e:
         _say(f"error: stopped by {signal.Signals(e.signum).name}; no partial output was left (a previous run's "

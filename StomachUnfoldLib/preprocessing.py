@@ -17,7 +17,7 @@ from .errors import AnatomyError, InputError, PointError
 from .geometry import Volume, lps_to_ras
 
 __all__ = ["distance_mm", "snap_to_region", "air_region", "fluid_below_level", "lumen_from_mask", "wall_region", "bounding_box",
-           "MAX_STOMACH_ML"]
+           "BelowThreshold", "MAX_STOMACH_ML"]
 
 #: Air regions larger than this (mL) are not a stomach (lungs, bowel, outside air).
 MAX_STOMACH_ML = 4000.0
@@ -257,6 +257,22 @@ def _touches_faces(mask: np.ndarray, axes) -> bool:
     return False
 
 
+class BelowThreshold:
+    """The CT's air, ``array < threshold``, computed only for the part indexed (``view[box]`` is a bool array).
+
+    Whole-CT masks cost half the CT's own memory each (int16 -> bool); the air region needs the air near the
+    points and in the stomach's box alone, so it indexes this view instead of thresholding the whole grid.
+    """
+
+    def __init__(self, array: np.ndarray, threshold: float):
+        self.array, self.threshold = array, threshold
+        self.shape, self.ndim = array.shape, array.ndim
+
+    def __getitem__(self, index) -> np.ndarray:
+        """``array[index] < threshold`` as a bool array (or a bool for one voxel)."""
+        return np.asarray(self.array[index] < self.threshold)
+
+
 def flood_fill(image: np.ndarray, seed) -> np.ndarray:
     """Bool mask of the voxels 6-connected to ``seed`` (k, j, i) holding its value (skimage's flood, connectivity=1).
 
@@ -266,7 +282,8 @@ def flood_fill(image: np.ndarray, seed) -> np.ndarray:
     """
     import SimpleITK as sitk
 
-    image = np.asarray(image, bool)
+    if not isinstance(image, BelowThreshold):
+        image = np.asarray(image, bool)
     s = tuple(int(x) for x in seed)
     if image.ndim != 3 or len(s) != 3 or any(not 0 <= x < n for x, n in zip(s, image.shape)):
         raise InputError(f"flood seed {list(s)} lies outside the 3-D array of shape {image.shape}")
@@ -493,7 +510,7 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     pts = {"cardia": np.asarray(cardia_lps, float).reshape(3), "pylorus": np.asarray(pylorus_lps, float).reshape(3)}
     for name, p in pts.items():
         _check_inside(ct, p, name)
-    air = ct.array < threshold_hu
+    air = BelowThreshold(ct.array, threshold_hu)  # thresholded where looked at: no whole-CT mask
     if progress is not None:
         progress(0.1)
     seeds = {}
@@ -529,7 +546,12 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
                                  f"{removed:.0f} mL beyond necks narrower than {2 * neck:g} mm was cut away "
                                  "(check the air region, or pass a stomach label with --mask)")
             comp = cut
-        region = comp if region is None else (region | comp)
+        if region is None:
+            region = comp
+        else:  # the union in comp's box alone, so that no whole-CT page is written
+            lo, hi = bounding_box(comp)
+            box = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
+            region[box] |= comp[box]
         n_comp += 1
         if progress is not None:
             progress(0.2 + 0.4 * (n_done + 1))
@@ -543,7 +565,9 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     warnings += info_fluid.pop("warnings")
     info.update(info_fluid)
     if info["fluid_voxels"]:
-        region = region | fluid
+        lo, hi = bounding_box(fluid)
+        box = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
+        region[box] |= fluid[box]  # in the fluid's box only: the rest of region stays untouched zero pages
         warnings.append(f"retained fluid below an air-fluid level at LPS y = {info['fluid_level_lps_y']:.1f} mm "
                         f"(RAS A = {-info['fluid_level_lps_y']:.1f} mm), {info['fluid_ml']:.0f} mL, was added to "
                         "the lumen; its contents are shown as air and the wall is bounded by the lumen")

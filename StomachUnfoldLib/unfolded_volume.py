@@ -409,7 +409,7 @@ def _tet_flags(rest, deformed, tets):
 def build_unfolded_volume(ct: Volume, rest: np.ndarray, deformed: np.ndarray, hexes: np.ndarray,
                           grid: UnfoldedGrid, background: float = -1024.0, clear_mask: np.ndarray | None = None,
                           progress=None, max_voxels: int = 400_000_000, dtype=np.int16,
-                          chunk_voxels: int = 2_000_000):
+                          chunk_voxels: int = 500_000):
     """Resample the CT (HU) into the unfolded grid through the deformed model; returns ``(Volume, info)``.
 
     ``rest`` and ``deformed`` are the (N,3) LPS mm vertex positions before and after the unfolding and

@@ -324,3 +324,18 @@ def test_a_point_not_placed_is_not_used(env):
     finally:
         pts.SetNthControlPointPosition(0, *p)
     assert np.allclose(logic.pointsFromMarkups(pts)[0 if label == "cardia" else 1], p)
+
+
+def test_a_batch_of_the_scenes_volumes_writes_the_command_lines_outputs(env, tmp_path):
+    scene, logic, vol, pts = env["scene"], env["logic"], env["vol"], env["pts"]
+    before = _scene_state(scene)
+    seen = []
+    rows = logic.unfoldBatch([(vol, pts)], str(tmp_path / "out"), method="cylindrical",
+                             progress=lambda stage, fraction: seen.append(fraction))
+    assert [r["status"] for r in rows] == ["ok"], rows
+    assert rows[0]["case"] == vol.GetName() and rows[0]["method"] == "cylindrical"
+    assert os.path.exists(tmp_path / "out" / vol.GetName() / "view.png")
+    assert os.path.exists(tmp_path / "out" / "summary.csv") and seen[-1] == 1.0
+    assert _scene_state(scene) == before  # files only, no node
+    again = logic.unfoldBatch([(vol, pts)], str(tmp_path / "out"), method="cylindrical")
+    assert again[0]["reused"] is True  # the same CT and points: done, reused
