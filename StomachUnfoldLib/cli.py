@@ -93,6 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--pylorus", help="pylorus point R,A,S in mm")
     u.add_argument("--points", help="Slicer .mrk.json with control points 'cardia' and 'pylorus' "
                                     "(or a phantom .json)")
+    u.add_argument("--auto-points", action="store_true",
+                   help="find the cardia and pylorus automatically: from the organs of a TotalSegmentator-like "
+                        "--mask (its stomach label is then the mask), else from the stomach gas; refused when unsure")
     u.add_argument("--output-dir", "-o", required=True, help="folder for the outputs")
     u.add_argument("--mask", help="stomach label volume (replaces the air threshold)")
     u.add_argument("--mask-label", type=int, default=None, help="label value of the stomach in --mask")
@@ -170,7 +173,12 @@ def _cmd_unfold(args) -> int:
     from .params import parameter_specs
     from .pipeline import UnfoldParameters, unfold
 
-    if args.points:
+    if args.auto_points:
+        if args.points or args.cardia or args.pylorus:
+            raise PointError("--auto-points finds the cardia and pylorus itself; leave out --cardia, --pylorus "
+                             "and --points (or leave out --auto-points)")
+        cardia = pylorus = None
+    elif args.points:
         cardia, pylorus = _points_from_file(args.points)
         if args.cardia:
             cardia = ras_to_lps(parse_point(args.cardia))
@@ -182,7 +190,12 @@ def _cmd_unfold(args) -> int:
         cardia, pylorus = ras_to_lps(parse_point(args.cardia)), ras_to_lps(parse_point(args.pylorus))
     params = UnfoldParameters(**{spec.name: getattr(args, spec.name) for spec in parameter_specs()})
     ct = read_volume(args.input, series_uid=args.series_uid)
-    mask = read_label_volume(args.mask, ct, label_value=args.mask_label) if args.mask else None
+    found = None
+    if args.auto_points:
+        cardia, pylorus, found, stomach_value = _auto_points(args, ct, params)
+        mask = read_label_volume(args.mask, ct, label_value=stomach_value) if args.mask else None
+    else:
+        mask = read_label_volume(args.mask, ct, label_value=args.mask_label) if args.mask else None
     curve = None
     if args.incision_curve:
         curve = np.array(list(read_markups_points(args.incision_curve).values()), float)
@@ -190,6 +203,8 @@ def _cmd_unfold(args) -> int:
     bar = _Bar(args.quiet)
     try:
         result = unfold(ct, cardia, pylorus, params, mask=mask, incision_curve_lps=curve, progress=bar)
+        if found is not None:
+            result.report["auto_points"] = found.to_dict()
         bar("writing", 1.0)
         result.write(args.output_dir, landmarks_lps=landmarks)
     finally:
@@ -201,6 +216,17 @@ def _cmd_unfold(args) -> int:
     for w in r["warnings"]:
         print(f"warning: {w}", file=sys.stderr)
     return 0
+
+
+def _auto_points(args, ct, params):
+    """--auto-points: (cardia, pylorus LPS mm, AutoPoints, stomach label value or None); PointError when unsure."""
+    from .io import read_volume
+    from .landmarks import auto_points_or_refuse, labels_on_grid
+
+    labels = labels_on_grid(read_volume(args.mask), ct) if args.mask else None
+    found = auto_points_or_refuse(ct, labels, threshold_hu=params.air_threshold_hu, max_snap_mm=params.max_snap_mm)
+    value = args.mask_label if args.mask_label is not None else found.labels.get("stomach")
+    return found.cardia_lps, found.pylorus_lps, found, value
 
 
 def _evaluation():

@@ -29,7 +29,7 @@ from .preprocessing import MAX_STOMACH_ML, bounding_box, distance_mm, nearest_tr
 
 __all__ = ["AutoPoints", "CLASS_MAPS", "TERMINOLOGY", "CONFIDENCE_THRESHOLD", "CARDIA_DEPTH_MM", "PYLORUS_DEPTH_MM",
            "recognise_labels", "stomach_label", "points_from_labels", "find_stomach_gas", "points_from_gas",
-           "find_points"]
+           "find_points", "labels_on_grid", "auto_points_or_refuse"]
 
 #: TotalSegmentator's ``total`` task: the organs used here, by class number (v2 "total" and v1 "total_v1").
 CLASS_MAPS = {
@@ -50,6 +50,10 @@ CONFIDENCE_THRESHOLD = 0.5
 #: How far (mm) inside the lumen the points are put: the cardia past the opening, the pylorus before it.
 CARDIA_DEPTH_MM = 5.0
 PYLORUS_DEPTH_MM = 3.0
+#: How far (mm) back from the far end of the gas the pylorus is looked for past a thin (duodenal) tail.
+PYLORUS_MAX_WALK_MM = 8.0
+#: Weight of the distance to the patient's right (mm per mm) added to the geodesic length when picking the far end.
+RIGHTWARD_WEIGHT = 1.0
 
 
 @dataclass
@@ -302,6 +306,56 @@ def _geodesic(region: np.ndarray, spacing, source: int):
     return dist, pred, (kk, jj, ii)
 
 
+def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.ndarray, d0: np.ndarray):
+    """The medial dome point (LPS mm) where a soft-tissue tube leaves superomedially; (point, outward normal, score).
+
+    Each candidate surface point is scored by the share of soft tissue (20 to 150 HU, above water) along a ray leaving it up
+    and medially (the oesophagus), less a penalty for lying far from the usual direction ``d0`` from the dome
+    centre; without a tube the support point toward ``d0`` wins.
+    """
+    g = ndimage.gaussian_filter(r_vol.array.astype(np.float32), 2.0 / r_vol.spacing[::-1])
+    gv = r_vol.with_array(g)
+    h = 1.5
+    grad = np.stack([gv.sample(cand + h * e) - gv.sample(cand - h * e) for e in np.eye(3)], 1)
+    n_out = -grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
+    u = np.array([-0.55, 0.2, 1.0])[None] + 0.6 * n_out
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    ts = np.arange(6.0, 26.0, 2.0)
+    ray = cand[:, None, :] + ts[None, :, None] * u[:, None, :]
+    hu = ct_c.sample(ray.reshape(-1, 3), order=1, cval=-1024.0).reshape(len(cand), len(ts))
+    tissue = ((hu > 20.0) & (hu < 150.0)).mean(1)
+    v = cand - centre
+    cosang = (v @ d0) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+    support = v @ d0
+    level = n_out[:, 1] > 0.6          # a flat air-fluid level faces posterior (supine): no opening there
+    score = tissue - 1.5 * (1.0 - cosang) + 0.01 * (support - support.max()) - 10.0 * level
+    best = int(np.argmax(score))
+    return cand[best], n_out[best], float(tissue[best])
+
+
+def _thin_tube_base(ct_c: Volume, thin: np.ndarray, opened: np.ndarray, centre: np.ndarray, radius: float):
+    """Where a thin gas tube (an open oesophagus) leaves the dome superomedially: LPS point (mm) or None."""
+    lab, n = ndimage.label(thin)
+    best, best_len = None, 6.0
+    for i in range(1, n + 1):
+        comp = lab == i
+        pts = ct_c.voxel_lps(comp)
+        if len(pts) < 3:
+            continue
+        base_mask = opened & ndimage.binary_dilation(comp, iterations=1)
+        if not base_mask.any():
+            continue
+        base = ct_c.voxel_lps(base_mask).mean(0)
+        far = pts[np.argmax(np.linalg.norm(pts - base, axis=1))]
+        length = float(np.linalg.norm(far - base))
+        v = base - centre
+        medial = v[0] < -0.3 * radius and abs(v[2]) < 1.2 * radius and np.linalg.norm(v) < 1.6 * radius
+        rising = far[2] > base[2] + 0.3 * length
+        if medial and rising and length > best_len:
+            best, best_len = base, length
+    return best
+
+
 def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
     """Cardia and pylorus guesses (LPS mm) from the shape of a stomach region (gas or label) on a crop.
 
@@ -320,24 +374,36 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
     top = int(cand[np.argmax(P[cand, 2])])
     dist, pred, _ = _geodesic(region, ct_c.spacing, top)
     dist = np.where(np.isfinite(dist), dist, -1.0)
-    tip = int(np.argmax(dist))
+    # the far end toward the patient's right (the antrum turns right to the pylorus), not the greater curvature's
+    # lowest point, which can lie as far along the region from the top
+    tip = int(np.argmax(np.where(dist >= 0, dist + RIGHTWARD_WEIGHT * (P[top, 0] - P[:, 0]), -np.inf)))
     path = [tip]
     while path[-1] != top and pred[path[-1]] >= 0 and len(path) < 100000:
         path.append(int(pred[path[-1]]))
     path = np.array(path)
-    deep = np.nonzero(e[path] >= PYLORUS_DEPTH_MM)[0]
-    pyl = P[path[deep[0]]] if len(deep) else P[tip]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P[path], axis=0), axis=1))])
+    deep = np.nonzero((e[path] >= PYLORUS_DEPTH_MM) & (arc <= PYLORUS_MAX_WALK_MM))[0]
+    # a thin canal (no voxel that deep near its end at this resolution): PYLORUS_DEPTH_MM back along the path
+    pyl = P[path[deep[0]]] if len(deep) else P[path[int(np.searchsorted(arc, PYLORUS_DEPTH_MM))]]
     # fundus dome: the widest point near the top; the cardia on its medial side
     near = np.nonzero((dist >= 0) & (dist <= 55.0))[0]
     centre = P[near[np.argmax(e[near])]]
     radius = float(e[near].max())
     d0 = _unit([-1.0, 0.17, 0.13])
-    band = near[(np.abs(P[near, 2] - centre[2]) <= 20.0) & (e[near] <= 1.05 * vox + 1e-6)]
+    # candidates: the medial surface of the region opened by a ball (not a thin oesophageal gas tube)
+    r_open = 2.0 * vox
+    opened = distance_mm(~(edt >= r_open), ct_c.spacing) <= r_open + 0.5 * vox
+    band = near[(np.abs(P[near, 2] - centre[2]) <= 25.0) & (e[near] <= 1.05 * vox + 1e-6)
+                & ((P[near] - centre) @ d0 > 0.0) & opened[kk[near], jj[near], ii[near]]]
     if not len(band):
         band = near
-    s = P[band[np.argmax((P[band] - centre) @ d0)]]
     r_vol = ct_c.with_array(region.astype(np.uint8))
-    cardia = _inside_along(r_vol, s, -d0, CARDIA_DEPTH_MM - 0.5 * vox)
+    s, n_out, tube = _oesophagus_probe(ct_c, r_vol, P[band], centre, d0)
+    gas_tube = _thin_tube_base(ct_c, region & ~opened, opened, centre, radius)
+    if gas_tube is not None and len(band):
+        s = P[band[np.argmin(np.linalg.norm(P[band] - gas_tube, axis=1))]]
+        n_out = _unit(s - centre)
+    cardia = _inside_along(r_vol, s, -n_out, CARDIA_DEPTH_MM - 0.5 * vox)
     length = float(dist[tip])
     c_conf, p_conf = 0.8, 0.8
     ev = [f"{'gas' if gas else 'label'} shape: fundus top RAS {np.round(lps_to_ras(P[top]), 1).tolist()}, dome "
@@ -423,7 +489,7 @@ def find_stomach_gas(ct: Volume, threshold_hu: float = -500.0) -> tuple[np.ndarr
 def points_from_gas(ct: Volume, threshold_hu: float = -500.0, max_snap_mm: float = 20.0) -> AutoPoints:
     """Cardia and pylorus (LPS mm) from the stomach gas of a gas-distended CT (HU), with confidences and evidence."""
     gas, info = find_stomach_gas(ct, threshold_hu)
-    lo, hi = bounding_box(gas, (3, 3, 3))
+    lo, hi = bounding_box(gas, tuple(int(np.ceil(30.0 / s)) for s in ct.spacing))
     ct_c = ct.crop(lo, hi)
     shape = _shape_points(ct_c, gas[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]], gas=True)
     region_conf = (0.5 + 0.5 * float(np.clip(1.5 * (1.0 - info["runner_up_ratio"]), 0.0, 1.0)))
@@ -447,3 +513,32 @@ def find_points(ct: Volume, labels: np.ndarray | None = None, names: dict | None
     if labels is not None:
         return points_from_labels(ct, labels, names, convention, threshold_hu, max_snap_mm)
     return points_from_gas(ct, threshold_hu, max_snap_mm)
+
+
+def labels_on_grid(label_volume: Volume, reference: Volume) -> np.ndarray:
+    """A label volume's values resampled onto ``reference``'s grid (nearest neighbour, physical space), int32 array."""
+    import SimpleITK as sitk
+
+    img = label_volume.to_sitk()
+    if img.GetPixelID() not in (sitk.sitkUInt8, sitk.sitkInt8, sitk.sitkUInt16, sitk.sitkInt16, sitk.sitkUInt32,
+                                sitk.sitkInt32):
+        img = sitk.Cast(img, sitk.sitkInt32)
+    ref = sitk.Image([int(v) for v in reference.size], sitk.sitkUInt8)
+    ref.SetSpacing([float(s) for s in reference.spacing])
+    ref.SetOrigin([float(o) for o in reference.origin])
+    ref.SetDirection([float(d) for d in reference.direction.ravel()])
+    out = sitk.Resample(img, ref, sitk.Transform(), sitk.sitkNearestNeighbor, 0, img.GetPixelID())
+    return sitk.GetArrayFromImage(out).astype(np.int32)
+
+
+def auto_points_or_refuse(ct: Volume, labels: np.ndarray | None = None, names: dict | None = None,
+                          threshold_hu: float = -500.0, max_snap_mm: float = 20.0) -> AutoPoints:
+    """:func:`find_points`, raising PointError (with the best guesses in RAS mm) below ``CONFIDENCE_THRESHOLD``."""
+    from .errors import PointError
+
+    found = find_points(ct, labels, names, threshold_hu=threshold_hu, max_snap_mm=max_snap_mm)
+    if not found.confident:
+        raise PointError(f"the automatic cardia and pylorus are unsure (confidence {found.cardia_confidence:.2f} and "
+                         f"{found.pylorus_confidence:.2f}, below {CONFIDENCE_THRESHOLD:g}; from the {found.source}); "
+                         f"pass --cardia/--pylorus or --points; best guesses (RAS mm): {found.guesses_ras_text()}")
+    return found
