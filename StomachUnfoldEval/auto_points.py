@@ -16,7 +16,7 @@ from StomachUnfoldLib.landmarks import CLASS_MAPS, find_points
 
 from .random_stomach import LABELS, random_stomach
 
-__all__ = ["totalseg_labels", "point_errors", "TOLERANCE_MM"]
+__all__ = ["totalseg_labels", "point_errors", "found_versus_truth", "TOLERANCE_MM"]
 
 #: A found point within this distance (mm) of the true one counts as found.
 TOLERANCE_MM = 10.0
@@ -65,3 +65,14 @@ def point_errors(seed: int, size: str = "tiny", source: str = "gas", case=None) 
             "cardia_confidence": found.cardia_confidence, "pylorus_confidence": found.pylorus_confidence,
             "confident": found.confident, "within_tolerance": bool(max(e_c, e_p) <= TOLERANCE_MM),
             "seconds": sec, "found": found}
+
+
+def found_versus_truth(ct, truth: dict, labels=None):
+    """Points found on ``ct`` (from the gas, or ``labels``) and how far (mm) they lie from the truth's points:
+    (cardia LPS, pylorus LPS, a JSON-ready summary with the errors, confidences and evidence)."""
+    found = find_points(ct, labels=labels)
+    e_c = float(np.linalg.norm(found.cardia_lps - np.asarray(truth["cardia_lps"])))
+    e_p = float(np.linalg.norm(found.pylorus_lps - np.asarray(truth["pylorus_lps"])))
+    summary = {**found.to_dict(), "cardia_error_mm": e_c, "pylorus_error_mm": e_p, "confidence": found.confidence,
+               "confident": found.confident, "within_tolerance": bool(max(e_c, e_p) <= TOLERANCE_MM)}
+    return found.cardia_lps, found.pylorus_lps, summary

@@ -470,8 +470,8 @@ def find_stomach_gas(ct: Volume, threshold_hu: float = -500.0) -> tuple[np.ndarr
     cands = [r for r in rows if not r["excluded"]]
     if not cands:
         raise AnatomyError(f"no stomach gas found: no gas region of at least {MIN_GAS_ML:g} mL inside the body that "
-                           "is neither lung nor outside air; place the points (--cardia/--pylorus) or pass a "
-                           "segmentation with --mask")
+                           "is neither lung nor outside air; place the points (--cardia/--pylorus or "
+                           "--points) or pass a segmentation with --mask")
     z_best = max(r["top_z"] for r in cands)
     for r in cands:
         r["score"] = r["ml"] * (1.0 if r["x"] > body_x else 0.35) * float(np.exp(-(z_best - r["top_z"]) / 80.0))
