@@ -136,7 +136,6 @@ def test_cli_refuses_unsure_points_with_the_guesses_in_ras(tmp_path, capsys, cas
 
 
 def test_cli_auto_points_with_a_totalsegmentator_mask_uses_its_stomach_label(tmp_path, capsys, cases):
-    from StomachUnfoldLib.errors import PointError
     from StomachUnfoldLib.io import write_volume
 
     vol, truth, lab = cases[3]
@@ -147,10 +146,10 @@ def test_cli_auto_points_with_a_totalsegmentator_mask_uses_its_stomach_label(tmp
     assert np.array_equal(back, seg)
     found = find_points(vol, back)
     assert found.convention == "total_v1" and found.labels == {"stomach": 6, "esophagus": 42, "duodenum": 56}
-    with pytest.raises(PointError):  # --auto-points with explicit points is a contradiction
-        from StomachUnfoldLib.cli import _cmd_unfold, build_parser
-
-        _cmd_unfold(build_parser().parse_args(["unfold", "x.nrrd", "--auto-points", "--cardia=1,2,3", "-o", "o"]))
+    # --auto-points with explicit points is a contradiction: one-line error, nothing written
+    code, out, err = _run_cli(["unfold", seg_path, "--auto-points", "--cardia=1,2,3", "-o", str(tmp_path / "o")],
+                              capsys)
+    assert code == 2 and "--auto-points" in err and not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize("ct_name, seg_name", [
