@@ -25,7 +25,7 @@ from scipy import ndimage
 
 from .errors import AnatomyError, InputError
 from .geometry import Volume, lps_to_ras
-from .preprocessing import MAX_STOMACH_ML, bounding_box, distance_mm, nearest_true
+from .preprocessing import MAX_STOMACH_ML, bounding_box, distance_mm, fluid_below_level, nearest_true
 
 __all__ = ["AutoPoints", "CLASS_MAPS", "TERMINOLOGY", "CONFIDENCE_THRESHOLD", "CARDIA_DEPTH_MM", "PYLORUS_DEPTH_MM",
            "recognise_labels", "stomach_label", "points_from_labels", "find_stomach_gas", "points_from_gas",
@@ -387,22 +387,24 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
     pyl = P[path[deep[0]]] if len(deep) else P[path[int(np.searchsorted(arc, PYLORUS_DEPTH_MM))]]
     # fundus dome: the widest point near the top; the cardia on its medial side
     near = np.nonzero((dist >= 0) & (dist <= 55.0))[0]
-    centre = P[near[np.argmax(e[near])]]
     radius = float(e[near].max())
+    centre = P[near[e[near] >= 0.9 * radius]].mean(0)   # the middle of the dome's medial plateau
+    near = np.nonzero((dist >= 0) & (dist <= 80.0))[0]
     d0 = _unit([-1.0, 0.17, 0.13])
     # candidates: the medial surface of the region opened by a ball (not a thin oesophageal gas tube)
     r_open = 2.0 * vox
     opened = distance_mm(~(edt >= r_open), ct_c.spacing) <= r_open + 0.5 * vox
-    band = near[(np.abs(P[near, 2] - centre[2]) <= 25.0) & (e[near] <= 1.05 * vox + 1e-6)
+    rel = np.linalg.norm(P[near] - centre, axis=1)
+    band = near[(P[near, 2] >= centre[2] - 0.35 * radius) & (P[near, 2] <= centre[2] + 0.8 * radius)
+                & (rel <= 1.4 * radius) & (e[near] <= 1.05 * vox + 1e-6)
                 & ((P[near] - centre) @ d0 > 0.0) & opened[kk[near], jj[near], ii[near]]]
     if not len(band):
         band = near
     r_vol = ct_c.with_array(region.astype(np.uint8))
     s, n_out, tube = _oesophagus_probe(ct_c, r_vol, P[band], centre, d0)
     gas_tube = _thin_tube_base(ct_c, region & ~opened, opened, centre, radius)
-    if gas_tube is not None and len(band):
-        s = P[band[np.argmin(np.linalg.norm(P[band] - gas_tube, axis=1))]]
-        n_out = _unit(s - centre)
+    if gas_tube is not None:
+        s, n_out = gas_tube, _unit(gas_tube - centre)
     cardia = _inside_along(r_vol, s, -n_out, CARDIA_DEPTH_MM - 0.5 * vox)
     length = float(dist[tip])
     c_conf, p_conf = 0.8, 0.8
@@ -489,18 +491,23 @@ def find_stomach_gas(ct: Volume, threshold_hu: float = -500.0) -> tuple[np.ndarr
 def points_from_gas(ct: Volume, threshold_hu: float = -500.0, max_snap_mm: float = 20.0) -> AutoPoints:
     """Cardia and pylorus (LPS mm) from the stomach gas of a gas-distended CT (HU), with confidences and evidence."""
     gas, info = find_stomach_gas(ct, threshold_hu)
-    lo, hi = bounding_box(gas, tuple(int(np.ceil(30.0 / s)) for s in ct.spacing))
+    # retained water under a flat air-fluid level is lumen too (as the front end adds it): the shape is the whole lumen
+    fluid, finfo = fluid_below_level(ct, gas, threshold_hu=threshold_hu)
+    lumen = gas | fluid
+    lo, hi = bounding_box(lumen, tuple(int(np.ceil(30.0 / s)) for s in ct.spacing))
     ct_c = ct.crop(lo, hi)
-    shape = _shape_points(ct_c, gas[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]], gas=True)
+    lumen_c = lumen[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+    shape = _shape_points(ct_c, lumen_c, gas=True)
     region_conf = (0.5 + 0.5 * float(np.clip(1.5 * (1.0 - info["runner_up_ratio"]), 0.0, 1.0)))
     region_conf *= float(np.clip(info["volume_ml"] / 150.0, 0.0, 1.0))
     evidence = info["evidence"] + shape["evidence"]
     if info["volume_ml"] < 150.0:
         evidence.append(f"only {info['volume_ml']:.0f} mL of gas: the stomach is probably not distended; unsure")
-    air = ct.array < threshold_hu
+    if finfo["fluid_voxels"]:
+        evidence.append(f"{finfo['fluid_ml']:.0f} mL of retained fluid under an air-fluid level taken as lumen")
     pts = {}
     for point in ("cardia", "pylorus"):
-        s = nearest_true(air, ct, shape[point], max_snap_mm)
+        s = nearest_true(lumen_c, ct_c, shape[point], max_snap_mm)
         pts[point] = s if s is not None else shape[point]
     return AutoPoints(pts["cardia"], pts["pylorus"], shape["cardia_confidence"] * region_conf,
                       shape["pylorus_confidence"] * region_conf, "gas", {}, None, evidence)
