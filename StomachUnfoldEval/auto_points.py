@@ -76,3 +76,60 @@ def found_versus_truth(ct, truth: dict, labels=None):
     summary = {**found.to_dict(), "cardia_error_mm": e_c, "pylorus_error_mm": e_p, "confidence": found.confidence,
                "confident": found.confident, "within_tolerance": bool(max(e_c, e_p) <= TOLERANCE_MM)}
     return found.cardia_lps, found.pylorus_lps, summary
+
+
+def point_benchmark(out_dir: str, quick: bool = False, size: str = "tiny") -> dict:
+    """Bench part ``autopoints``: the found points against the truth on the tuning seeds (0-29) and the held-out seeds
+    (1000-1029), from the gas and from both TotalSegmentator numberings; writes autopoints.json and autopoints.md."""
+    import json
+    import os
+
+    from .bench import HELD_OUT_SEEDS, TUNE_SEEDS
+
+    groups = (("tune", TUNE_SEEDS[:3] if quick else TUNE_SEEDS),
+              ("held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS))
+    rows = []
+    for group, seeds in groups:
+        for seed in seeds:
+            case = random_stomach(seed, size=size, labels=True)
+            for source in ("gas", "total", "total_v1"):
+                try:
+                    r = point_errors(seed, size, source, case=case)
+                    r.pop("found")
+                    r["ok"] = True
+                except Exception as e:  # a failure is data here
+                    r = {"seed": int(seed), "source": source, "ok": False, "error": f"{type(e).__name__}: {e}"}
+                rows.append(dict(r, group=group))
+    summary = {}
+    for group, _ in groups:
+        for source in ("gas", "total", "total_v1"):
+            rs = [r for r in rows if r["group"] == group and r["source"] == source]
+            ok = [r for r in rs if r["ok"]]
+            summary[f"{group}/{source}"] = {
+                "volumes": len(rs), "failed": len(rs) - len(ok),
+                "both_within": sum(r["within_tolerance"] for r in ok),
+                "cardia_within": sum(r["cardia_error_mm"] <= TOLERANCE_MM for r in ok),
+                "pylorus_within": sum(r["pylorus_error_mm"] <= TOLERANCE_MM for r in ok),
+                "cardia_error_median_mm": float(np.median([r["cardia_error_mm"] for r in ok])) if ok else None,
+                "pylorus_error_median_mm": float(np.median([r["pylorus_error_mm"] for r in ok])) if ok else None,
+                "refused": sum(not r["confident"] for r in ok),
+                "confident_but_off": sum(r["confident"] and not r["within_tolerance"] for r in ok),
+                "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None}
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "autopoints.json"), "w") as f:
+        json.dump({"size": size, "tolerance_mm": TOLERANCE_MM, "summary": summary, "rows": rows}, f, indent=1)
+    L = [f"# Zero clicks: points found against the truth (random stomachs, size {size})\n",
+         f"Both points within {TOLERANCE_MM:g} mm of the true cardia and pylorus; 'refused': below the confidence "
+         "threshold (the command line refuses, the module asks); 'confident but off': accepted yet over the "
+         "tolerance. Seeds 1000-1029 are held out (never tuned on).\n",
+         "| seeds / source | both within | cardia within | pylorus within | median error cardia / pylorus mm | "
+         "refused | confident but off | failed | s median |", "|---|---|---|---|---|---|---|---|---|"]
+    for key, v in summary.items():
+        def f1(x):
+            return "" if x is None else f"{x:.1f}"
+        L.append(f"| {key} | {v['both_within']}/{v['volumes']} | {v['cardia_within']} | {v['pylorus_within']} | "
+                 f"{f1(v['cardia_error_median_mm'])} / {f1(v['pylorus_error_median_mm'])} | {v['refused']} | "
+                 f"{v['confident_but_off']} | {v['failed']} | {f1(v['seconds_median'])} |")
+    with open(os.path.join(out_dir, "autopoints.md"), "w") as f:
+        f.write("\n".join(L) + "\n")
+    return summary

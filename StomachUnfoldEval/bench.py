@@ -853,7 +853,7 @@ def replot(out_dir: str = "docs/benchmark") -> list[str]:
 def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_size: bool = False,
                   scheduler: str | None = None, data_dir: str | None = None,
                   parts=("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling",
-                         "stomachs", "zeroclicks"),
+                         "stomachs", "zeroclicks", "autopoints"),
                   merge: bool = False) -> list[dict]:
     """Run the benchmark (all parts, or a quick subset) and write results.json, results.md and PNGs into out_dir.
 
@@ -884,4 +884,8 @@ def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_siz
                   default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
     with open(os.path.join(out_dir, "results.md"), "w") as f:
         f.write(_markdown(rows, full, meta, made))
+    if "autopoints" in parts:  # zero clicks: found points against the truth (autopoints.md), no unfolding
+        from .auto_points import point_benchmark
+
+        point_benchmark(out_dir, quick=quick)
     return rows

@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
     b.add_argument("--full-size", action="store_true", help="include the 512x512x400 phantom timing and scaling")
     b.add_argument("--scheduler", default=None, help="Dask scheduler address (default: a local cluster)")
-    b.add_argument("--parts", default="shapes,kappa,sweep,stability,resolution,peers,real,scaling,stomachs,zeroclicks",
+    b.add_argument("--parts", default="shapes,kappa,sweep,stability,resolution,peers,real,scaling,stomachs,zeroclicks,autopoints",
                    help="comma-separated parts to run")
     b.add_argument("--data-dir", default=None, help="folder of the real CTs (default ../shared/data)")
     b.add_argument("--merge", action="store_true",
