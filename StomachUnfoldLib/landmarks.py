@@ -407,9 +407,14 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
         s, n_out = gas_tube, _unit(gas_tube - centre)
     cardia = _inside_along(r_vol, s, -n_out, CARDIA_DEPTH_MM - 0.5 * vox)
     length = float(dist[tip])
-    c_conf, p_conf = 0.8, 0.8
+    # the cardia is surest where an open oesophagus shows as a thin gas tube, next where a tissue tube leaves
+    c_conf, p_conf = (0.9 if gas_tube is not None else 0.6 + 0.15 * tube), 0.8
     ev = [f"{'gas' if gas else 'label'} shape: fundus top RAS {np.round(lps_to_ras(P[top]), 1).tolist()}, dome "
-          f"radius {radius:.0f} mm, far end {length:.0f} mm along the {'gas' if gas else 'label'}"]
+          f"radius {radius:.0f} mm, far end {length:.0f} mm along the {'gas' if gas else 'label'}",
+          "cardia: " + ("the base of a thin gas tube leaving the dome superomedially (open oesophagus)"
+                        if gas_tube is not None else
+                        f"the medial dome where soft tissue leaves superomedially ({100 * tube:.0f} % tissue "
+                        "along the probe)")]
     if length < 80.0:
         c_conf, p_conf = c_conf * 0.5, p_conf * 0.5
         ev.append(f"the region is only {length:.0f} mm long (a stomach is over 80 mm): unsure")
