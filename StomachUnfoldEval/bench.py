@@ -758,8 +758,8 @@ def zero_click_summary(zero: list[dict], two_click_rows: list[dict]) -> dict:
     mk = [x["markers"] for x in q if "markers" in x]
     vis = [x["visible_fraction"] for x in q]
     two = {r["name"].split("/")[0]: r for r in two_click_rows if r["method"] == FAMILY_METHODS[0] and r.get("ok")}
-    same = sum(1 for r in ok if r["name"].split("/")[0] in two
-               and two[r["name"].split("/")[0]]["quality"]["grade"] == r["quality"]["grade"])
+    paired = [r for r in ok if r["name"].split("/")[0] in two]
+    same = sum(two[r["name"].split("/")[0]]["quality"]["grade"] == r["quality"]["grade"] for r in paired)
     auto = [r["auto_points"] for r in zero if r.get("auto_points")]
     dist = [x["pairwise_distance_distortion"] for x in mk if x.get("pairwise_distance_distortion") is not None]
     return {f"{FAMILY_METHODS[0]}, zero clicks": {
@@ -776,7 +776,7 @@ def zero_click_summary(zero: list[dict], two_click_rows: list[dict]) -> dict:
         "visible_not_below_every_peer": 0, "length_error_mm_mean": None, "length_error_mm_sd_of_means": None,
         "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None,
         "points_within_10mm": sum(a["within_tolerance"] for a in auto), "refused": sum(not a["confident"] for a in auto),
-        "grade_as_two_clicks": same,
+        "grade_as_two_clicks": same, "with_two_click_row": len(paired),
         "cardia_error_mm_median": float(np.median([a["cardia_error_mm"] for a in auto])) if auto else None,
         "pylorus_error_mm_median": float(np.median([a["pylorus_error_mm"] for a in auto])) if auto else None}}
 
@@ -813,7 +813,7 @@ def family_markdown(rows: list[dict]) -> list[str]:
                          f"{v['points_within_10mm']}/{v['volumes']} volumes (median errors "
                          f"{f(v['cardia_error_mm_median'], '{:.1f}')} and {f(v['pylorus_error_mm_median'], '{:.1f}')} "
                          f"mm), {v['refused']} refused as unsure; the grade equals the two-click grade on "
-                         f"{v['grade_as_two_clicks']}/{v['volumes']}.\n")
+                         f"{v['grade_as_two_clicks']}/{v['with_two_click_row']} (volumes with a two-click row).\n")
         L.append("<details><summary>every volume</summary>\n")
         L.append("| volume / method | grade | visible % | parts | markers | distortion | bound | stretched % | s |")
         L.append("|---|---|---|---|---|---|---|---|---|")

@@ -142,5 +142,6 @@ def test_zero_clicks_row_sits_beside_the_two_click_rows():
     assert (z["volumes"], z["failed"], z["points_within_10mm"], z["refused"], z["grade_as_two_clicks"]) == (3, 1, 1, 1, 1)
     text = "\n".join(bench.family_markdown(rows))
     assert "| isometric, zero clicks | 2/3 |" in text and "within 10 mm of the true cardia and pylorus on 1/3" in text
+    assert "two-click grade on 1/2 (volumes with a two-click row)" in text
     cases = bench.zero_click_cases(quick=True)
     assert len(cases) == 6 and all(c["source"]["auto_points"] for c in cases)
