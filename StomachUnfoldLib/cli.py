@@ -53,16 +53,6 @@ def _points_from_file(path: str):
                      "labelled 'cardia' and 'pylorus', or --cardia/--pylorus R,A,S")
 
 
-def _bool(text: str) -> bool:
-    """Parse a command-line truth value (1/0, true/false, yes/no, on/off)."""
-    t = text.strip().lower()
-    if t in ("1", "true", "yes", "on"):
-        return True
-    if t in ("0", "false", "no", "off"):
-        return False
-    raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
-
-
 def add_parameter_flags(parser: argparse.ArgumentParser) -> None:
     """One flag per parameter of ``params.parameter_specs`` (its type, default, choices and help), grouped by stage."""
     from .methods import methods
@@ -73,12 +63,27 @@ def add_parameter_flags(parser: argparse.ArgumentParser) -> None:
         g = groups.get(spec.group)
         if g is None:
             g = groups[spec.group] = parser.add_argument_group(f"{spec.group or 'method'} parameters")
-        kind = _bool if spec.kind is bool else spec.kind
         help_ = spec.help
         if spec.name == "method":
             help_ += ": " + "; ".join(f"{n} ({d})" for n, d in methods().items())
-        g.add_argument(spec.flag, dest=spec.name, type=kind, default=spec.default, choices=spec.choices,
-                       help=f"{help_} (default {spec.default})")
+        elif spec.choices:
+            help_ += f"; one of {', '.join(spec.choices)}"
+        if spec.kind is bool:
+            g.add_argument(spec.flag, dest=spec.name, action=argparse.BooleanOptionalAction, default=spec.default,
+                           help=f"{help_} (default {'on' if spec.default else 'off'})")
+            continue
+        g.add_argument(spec.flag, dest=spec.name, type=spec.kind, default=spec.default, choices=spec.choices,
+                       metavar=spec.name.upper() if spec.choices and spec.name != "method" else None,
+                       help=help_ if spec.default is None else f"{help_} (default {spec.default})")
+
+
+#: The end of ``unfold --help``.
+UNFOLD_EXAMPLES = """examples:
+  stomach-unfold unfold ct.nrrd --cardia -54.9,27.7,64 --pylorus 12.3,-40.1,-30.5 -o out
+      (points in RAS mm as Slicer shows them; out/view.png is the view, out/report.json the run)
+  stomach-unfold unfold ct.nii.gz --points points.mrk.json --mask seg.nii.gz --mask-label 6 -o out --view-size 800
+      (a stomach without gas: pass its segmentation, e.g. TotalSegmentator's label 6)
+"""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -87,34 +92,48 @@ def build_parser() -> argparse.ArgumentParser:
                                  description="Virtual unfolded views of the stomach from CT (Oda et al.).")
     sub = ap.add_subparsers(dest="command", required=True)
 
-    u = sub.add_parser("unfold", help="unfold the stomach of a CT volume")
-    u.add_argument("input", help="CT volume: NRRD, NIfTI, MHA or a DICOM folder")
-    u.add_argument("--cardia", help="cardia point R,A,S in mm (Slicer's RAS frame)")
-    u.add_argument("--pylorus", help="pylorus point R,A,S in mm")
-    u.add_argument("--points", help="Slicer .mrk.json with control points 'cardia' and 'pylorus' "
-                                    "(or a phantom .json)")
+    u = sub.add_parser("unfold", help="unfold the stomach of a CT volume", epilog=UNFOLD_EXAMPLES,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    u.add_argument("input", help="CT volume (HU): NRRD, NIfTI, MHA or a DICOM folder")
+    u.add_argument("--cardia", metavar="R,A,S", help="cardia point in mm, Slicer's RAS frame, commas between")
+    u.add_argument("--pylorus", metavar="R,A,S", help="pylorus point in mm, Slicer's RAS frame, commas between")
+    u.add_argument("--points", metavar="FILE", help="Slicer .mrk.json with control points 'cardia' and 'pylorus' "
+                                                    "(or a phantom's truth .json: its markers are then scored)")
     u.add_argument("--auto-points", action="store_true",
                    help="find the cardia and pylorus automatically: from the organs of a TotalSegmentator-like "
                         "--mask (its stomach label is then the mask), else from the stomach gas; refused when unsure")
-    u.add_argument("--output-dir", "-o", required=True, help="folder for the outputs")
-    u.add_argument("--mask", help="stomach label volume (replaces the air threshold)")
-    u.add_argument("--mask-label", type=int, default=None, help="label value of the stomach in --mask")
-    u.add_argument("--incision-curve", help="user incision curve (.mrk.json, LPS or RAS)")
-    u.add_argument("--landmarks", help=".mrk.json of points to map into the unfolded volume")
-    u.add_argument("--series-uid", help="DICOM series to read when a folder holds several")
+    u.add_argument("--output-dir", "-o", required=True, metavar="DIR", help="folder for the output files")
+    u.add_argument("--mask", metavar="FILE", help="stomach label volume on the CT's grid (replaces the air threshold)")
+    u.add_argument("--mask-label", type=int, default=None, metavar="N",
+                   help="label value of the stomach in --mask (default: every non-zero voxel)")
+    u.add_argument("--incision-curve", metavar="FILE", help="user incision curve (.mrk.json, LPS or RAS mm)")
+    u.add_argument("--landmarks", metavar="FILE",
+                   help=".mrk.json of points (mm) to map into the unfolded volume and mark on view.png")
+    u.add_argument("--series-uid", metavar="UID", help="DICOM series to read when a folder holds several")
+    u.add_argument("--view-size", type=int, default=None, metavar="PIXELS",
+                   help="width in pixels of each panel of view.png, resampled bilinearly (default: the view's own "
+                        "width in pixels, at least 512)")
+    u.add_argument("--dicom", action="store_true",
+                   help="also write dicom/: view.png as a DICOM secondary capture and the unfolded volume as a CT "
+                        "series, in the source study (its patient and study identifiers) when the input is DICOM")
     u.add_argument("--quiet", action="store_true", help="no progress bar")
     add_parameter_flags(u)
 
     p = sub.add_parser("phantom", help="write a synthetic CT of a gas-distended stomach with markers")
     p.add_argument("output", help="output volume path (e.g. phantom.nrrd); a .json and .mrk.json go beside it")
-    p.add_argument("--shape", default="j", help="straight, bent, j, twisted, thin_wall or hook (a sharp angular incisure)")
-    p.add_argument("--size", default="small", help="tiny, small, medium or full (512x512x400 at 0.7 mm)")
-    p.add_argument("--spacing", default=None, help="voxel spacing sx,sy,sz in mm")
-    p.add_argument("--wall-thickness-mm", type=float, default=4.0)
-    p.add_argument("--rugae", action="store_true")
-    p.add_argument("--noise-hu", type=float, default=15.0)
-    p.add_argument("--markers", type=int, default=12)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--shape", default="j",
+                   metavar="SHAPE", help="one of straight, bent, j, twisted, thin_wall or hook (a sharp angular "
+                                         "incisure) (default j)")
+    p.add_argument("--size", default="small", metavar="SIZE",
+                   help="tiny (1.8 mm voxels), small (1.2 mm), medium (0.9 mm) or full (512x512x400 at 0.7 mm) "
+                        "(default small)")
+    p.add_argument("--spacing", default=None, metavar="SX,SY,SZ", help="voxel spacing in mm (default: from --size)")
+    p.add_argument("--wall-thickness-mm", type=float, default=4.0, help="stomach wall thickness in mm (default 4)")
+    p.add_argument("--rugae", action="store_true", help="add gastric folds (rugae) to the mucosa")
+    p.add_argument("--noise-hu", type=float, default=15.0, help="Gaussian image noise, standard deviation in HU "
+                                                                  "(default 15)")
+    p.add_argument("--markers", type=int, default=12, help="number of dense marker beads on the mucosa (default 12)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the image noise (default 0)")
     p.add_argument("--flip", action="store_true", help="flipped direction matrix (det = -1)")
     p.add_argument("--random", type=int, default=None, metavar="SEED",
                    help="draw a stomach at random from the anatomical family (fundus dome, side openings, incisure, "
@@ -122,7 +141,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "options are ignored")
 
     b = sub.add_parser("bench", help="run the benchmark and write tables and PNGs")
-    b.add_argument("--output-dir", "-o", default="docs/benchmark")
+    b.add_argument("--output-dir", "-o", default="docs/benchmark", metavar="DIR",
+                   help="folder for results.json, results.md and the charts (default docs/benchmark)")
     b.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
     b.add_argument("--full-size", action="store_true", help="include the 512x512x400 phantom timing and scaling")
     b.add_argument("--scheduler", default=None, help="Dask scheduler address (default: a local cluster)")
@@ -137,35 +157,120 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class _Bar:
-    """A text progress bar on stderr for the library's (stage, fraction) callback: redrawn in place on a terminal,
-    one plain line per stage (and every 25 %) when stderr is a file, so a log stays readable."""
+    """A text progress bar on stderr for the library's (stage, fraction) callback.
 
-    def __init__(self, quiet: bool, stream=None):
+    On a terminal: one line redrawn in place, at least once a second (a ticker thread), with the elapsed time and
+    an estimate of the time left. In a log (stderr not a terminal): one line per finished stage with its seconds.
+    ``span(lo, hi)`` maps the callback's fractions onto [lo, hi] of the whole run (reading, unfolding, writing).
+    """
+
+    def __init__(self, quiet: bool, stream=None, tick_s: float = 0.5):
+        import threading
+
         self.quiet, self.stream = quiet, stream or sys.stderr
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self.t0 = time.perf_counter()
-        self.stage, self.quarter, self.shown = None, -1, -1.0
+        self.t0 = self.t_stage = time.perf_counter()
+        self.stage, self.fraction, self.lo, self.hi = None, 0.0, 0.0, 1.0
+        self.lock, self.done = threading.Lock(), threading.Event()
+        self.ticker = None
+        if self.tty and not quiet:
+            self.ticker = threading.Thread(target=self._tick, args=(tick_s,), daemon=True)
+            self.ticker.start()
+
+    def span(self, lo: float, hi: float) -> "_Bar":
+        """Map the following fractions onto [lo, hi] of the bar."""
+        self.lo, self.hi = lo, hi
+        return self
+
+    def _tick(self, tick_s: float) -> None:
+        while not self.done.wait(tick_s):
+            with self.lock:
+                self._draw()
+
+    def _draw(self) -> None:
+        if self.stage is None:
+            return
+        f = self.fraction
+        t = time.perf_counter() - self.t0
+        eta = f"~{t / f * (1 - f):4.0f} s left" if 0.03 < f < 1.0 else " " * 12
+        bar = "#" * int(25 * f)
+        self.stream.write(f"\r{self.stage:<18} {int(100 * f):3d}% |{bar:<25}| {t:5.1f} s {eta}")
+        self.stream.flush()
 
     def __call__(self, stage: str, fraction: float):
         if self.quiet:
             return
-        pct = int(100 * min(max(fraction, 0.0), 1.0))
-        t = time.perf_counter() - self.t0
-        if self.tty:
-            if stage != self.stage or pct - self.shown >= 1:
-                bar = "#" * (pct // 4)
-                self.stream.write(f"\r{stage:<18} {pct:3d}% |{bar:<25}| {t:5.1f} s")
-                self.stream.flush()
-                self.stage, self.shown = stage, pct
-        elif stage != self.stage or pct // 25 > self.quarter:
-            self.stream.write(f"{t:6.1f} s {pct:3d}% {stage}\n")
-            self.stream.flush()
-            self.stage, self.quarter = stage, pct // 25
+        f = self.lo + (self.hi - self.lo) * min(max(fraction, 0.0), 1.0)
+        with self.lock:
+            now = time.perf_counter()
+            if stage != self.stage:
+                if not self.tty and self.stage is not None:
+                    self.stream.write(f"{self.stage}: {now - self.t_stage:.1f} s\n")
+                    self.stream.flush()
+                self.stage, self.t_stage = stage, now
+            self.fraction = max(self.fraction, f)
+            if self.tty:
+                self._draw()
 
     def close(self):
-        if not self.quiet and self.tty:
-            self.stream.write("\n")
+        self.done.set()
+        if self.quiet:
+            return
+        with self.lock:
+            now = time.perf_counter()
+            if self.tty:
+                self.stream.write("\n")
+            elif self.stage is not None:
+                self.stream.write(f"{self.stage}: {now - self.t_stage:.1f} s\ntotal: {now - self.t0:.1f} s\n")
             self.stream.flush()
+            self.stage = None
+
+
+def _sha256(path: str) -> str | None:
+    """SHA-256 (hex) of a file, or of a folder's files (names and contents, sorted: a DICOM series); None if absent."""
+    import hashlib
+
+    if not path or not os.path.exists(path):
+        return None
+    h = hashlib.sha256()
+    files = [path] if os.path.isfile(path) else sorted(
+        os.path.join(d, f) for d, _, fs in os.walk(path) for f in fs)
+    for fp in files:
+        if len(files) > 1:
+            h.update(os.path.relpath(fp, path).encode() + b"\0")
+        with open(fp, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def _reproduce(args, argv) -> dict:
+    """The report's record of how the run was asked for: paths and checksums of the inputs, and the command line."""
+    import shlex
+
+    files = {}
+    for key in ("input", "mask", "points", "incision_curve", "landmarks"):
+        path = getattr(args, key, None)
+        if path:
+            files[key] = {"path": os.path.abspath(path), "sha256": _sha256(path)}
+    line = ["stomach-unfold", *argv]
+    return {"files": files, "mask_label": args.mask_label, "series_uid": args.series_uid,
+            "command_line": shlex.join(line), "argv": line, "working_directory": os.getcwd()}
+
+
+def _phantom_markers(path: str):
+    """A phantom truth .json's markers {id: LPS mm}, or None for any other points file."""
+    if not path or path.endswith(".mrk.json"):
+        return None
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except (OSError, ValueError):
+        return None
+    marks = data.get("markers") if isinstance(data, dict) else None
+    if not isinstance(marks, list) or not marks:
+        return None
+    return {str(m["id"]): np.asarray(m["lps"], float) for m in marks if isinstance(m, dict) and "lps" in m}
 
 
 def _cmd_unfold(args) -> int:
@@ -189,24 +294,40 @@ def _cmd_unfold(args) -> int:
             raise PointError("give both --cardia R,A,S and --pylorus R,A,S (mm, RAS), or --points file.mrk.json")
         cardia, pylorus = ras_to_lps(parse_point(args.cardia)), ras_to_lps(parse_point(args.pylorus))
     params = UnfoldParameters(**{spec.name: getattr(args, spec.name) for spec in parameter_specs()})
-    ct = read_volume(args.input, series_uid=args.series_uid)
-    found = None
-    if args.auto_points:
-        cardia, pylorus, found, stomach_value = _auto_points(args, ct, params)
-        mask = read_label_volume(args.mask, ct, label_value=stomach_value) if args.mask else None
-    else:
-        mask = read_label_volume(args.mask, ct, label_value=args.mask_label) if args.mask else None
-    curve = None
-    if args.incision_curve:
-        curve = np.array(list(read_markups_points(args.incision_curve).values()), float)
-    landmarks = read_markups_points(args.landmarks) if args.landmarks else None
+    if args.view_size is not None and not 64 <= args.view_size <= 8000:
+        raise InputError(f"--view-size is the width of each panel of view.png in pixels, 64 to 8000; got {args.view_size}")
     bar = _Bar(args.quiet)
     try:
-        result = unfold(ct, cardia, pylorus, params, mask=mask, incision_curve_lps=curve, progress=bar)
+        bar.span(0.0, 0.08)("reading the CT", 0.0)
+        ct = read_volume(args.input, series_uid=args.series_uid)
+        found = None
+        if args.auto_points:
+            cardia, pylorus, found, stomach_value = _auto_points(args, ct, params)
+            mask = read_label_volume(args.mask, ct, label_value=stomach_value) if args.mask else None
+        else:
+            mask = read_label_volume(args.mask, ct, label_value=args.mask_label) if args.mask else None
+        bar("reading the CT", 1.0)
+        curve = None
+        if args.incision_curve:
+            curve = np.array(list(read_markups_points(args.incision_curve).values()), float)
+        landmarks = read_markups_points(args.landmarks) if args.landmarks else None
+        result = unfold(ct, cardia, pylorus, params, mask=mask, incision_curve_lps=curve, progress=bar.span(0.08, 0.95))
+        bar.span(0.95, 1.0)("writing", 0.0)
         if found is not None:
             result.report["auto_points"] = found.to_dict()
+        result.report["run"].update(_reproduce(args, getattr(args, "argv", [])))
+        markers = _phantom_markers(args.points)
+        if markers and _has_evaluation():
+            from StomachUnfoldEval.markers import marker_metrics
+
+            result.report["markers"] = marker_metrics(result, markers)
+        study = None
+        if args.dicom:
+            from .dicom_export import source_study_tags
+
+            study = source_study_tags(args.input, args.series_uid)
+        result.write(args.output_dir, landmarks_lps=landmarks, view_size=args.view_size, dicom_study=study)
         bar("writing", 1.0)
-        result.write(args.output_dir, landmarks_lps=landmarks)
     finally:
         bar.close()
     r = result.report
@@ -227,6 +348,13 @@ def _auto_points(args, ct, params):
     found = auto_points_or_refuse(ct, labels, threshold_hu=params.air_threshold_hu, max_snap_mm=params.max_snap_mm)
     value = args.mask_label if args.mask_label is not None else found.labels.get("stomach")
     return found.cardia_lps, found.pylorus_lps, found, value
+
+
+def _has_evaluation() -> bool:
+    """Whether the evaluation package (phantom marker metrics) is installed."""
+    import importlib.util
+
+    return importlib.util.find_spec("StomachUnfoldEval") is not None
 
 
 def _evaluation():
@@ -277,6 +405,28 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _spaced_point(argv: list) -> str | None:
+    """The message for a point given with spaces (``--cardia -54.9 27.7 64``), or None when every point is glued."""
+    for i, a in enumerate(argv):
+        for flag in ("--cardia", "--pylorus"):
+            if a.startswith(flag + "=") or a == flag:
+                value = a.split("=", 1)[1] if "=" in a else (argv[i + 1] if i + 1 < len(argv) else "")
+                nxt = argv[i + 1:i + 3] if "=" in a else argv[i + 2:i + 4]
+                numeric = [v for v in nxt if _is_number(v)]
+                if ("," not in value and (len(value.split()) == 3 or len(numeric) == 2)):
+                    return (f"{flag} takes one value R,A,S: use R,A,S with commas and no spaces, "
+                            f"e.g. {flag} -54.9,27.7,64")
+    return None
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def main(argv=None) -> int:
     """Entry point of ``stomach-unfold``; returns the exit status (0 ok, 2 bad input or failure, 130 cancelled)."""
     parser = build_parser()
@@ -286,7 +436,12 @@ def main(argv=None) -> int:
         while flag in argv[:-1]:
             i = argv.index(flag)
             argv[i:i + 2] = [f"{flag}={argv[i + 1]}"]
+    spaced = _spaced_point(argv)
+    if spaced:
+        print(f"error: {spaced}", file=sys.stderr)
+        return 2
     args = parser.parse_args(argv)
+    args.argv = argv
     try:
         if args.command == "unfold":
             return _cmd_unfold(args)

@@ -16,13 +16,13 @@ from .geometry import Volume, lps_to_ras
 from .params import UnfoldParameters
 from .progress import Progress
 
-__all__ = ["Prepared", "prepare", "check_volume", "check_points", "crop_margin_mm", "timed_stage",
+__all__ = ["Prepared", "prepare", "check_volume", "check_points", "outside_message", "crop_margin_mm", "timed_stage",
            "available_memory_bytes", "estimate_memory_bytes", "SWAP_LIMIT_MM", "FRONT_STAGES"]
 
 #: The cardia lies superior to the pylorus on supine CT; a "cardia" this far (mm) below the "pylorus" is a swap.
 SWAP_LIMIT_MM = 20.0
 #: The front end's stages and their share of the front end's progress.
-FRONT_STAGES = [("air region", 0.0, 0.33), ("wall region", 0.33, 0.5), ("centreline", 0.5, 0.83),
+FRONT_STAGES = [("air region", 0.0, 0.33), ("wall region", 0.33, 0.5), ("centerline", 0.5, 0.83),
                 ("incision line", 0.83, 1.0)]
 
 
@@ -83,7 +83,7 @@ class Prepared:
 class timed_stage:
     """Context manager: reports ``stage`` at 0 and 1 on ``progress``, adds its wall time (s) to ``seconds[stage]``.
 
-    ``with timed_stage(progress, "centreline", seconds) as report: ...`` where ``report(fraction)`` reports within
+    ``with timed_stage(progress, "centerline", seconds) as report: ...`` where ``report(fraction)`` reports within
     the stage (a callable for the library's ``progress=`` arguments).
     """
 
@@ -157,6 +157,25 @@ def check_volume(ct: Volume) -> list[str]:
     return warnings
 
 
+def outside_message(ct: Volume, name: str, p_lps) -> str:
+    """The error for a point (LPS mm) outside the CT: the point and the volume's bounds in RAS mm (the frame the
+    user gave), and whether the sign-flipped point (LPS values typed as RAS) would lie inside."""
+    lo, hi = (np.asarray(b, float) for b in ct.bounds_lps())
+    ras_lo = np.array([-hi[0], -hi[1], lo[2]])
+    ras_hi = np.array([-lo[0], -lo[1], hi[2]])
+    p = np.asarray(p_lps, float)
+
+    def txt(v):
+        return ", ".join(f"{x:.1f}" for x in v)
+    msg = (f"the {name} point (RAS {txt(lps_to_ras(p))} mm) lies outside the volume (RAS bounds: R {ras_lo[0]:.1f} "
+           f"to {ras_hi[0]:.1f}, A {ras_lo[1]:.1f} to {ras_hi[1]:.1f}, S {ras_lo[2]:.1f} to {ras_hi[2]:.1f} mm)")
+    flipped = np.array([-p[0], -p[1], p[2]])
+    if ct.contains_lps(flipped[None], margin=0.5)[0]:
+        msg += (f"; with R and A sign-flipped (RAS {txt(lps_to_ras(flipped))}) it would lie inside: were LPS "
+                "coordinates given as RAS? Slicer shows RAS")
+    return msg + "; place it inside the stomach"
+
+
 def check_points(ct: Volume, cardia_lps, pylorus_lps, swap_check: bool = True) -> tuple[np.ndarray, np.ndarray, list]:
     """Checked cardia and pylorus (LPS mm), exchanged if they were swapped; PointError saying why if unusable."""
     pts = []
@@ -165,10 +184,7 @@ def check_points(ct: Volume, cardia_lps, pylorus_lps, swap_check: bool = True) -
         if p.shape != (3,) or not np.all(np.isfinite(p)):
             raise PointError(f"the {name} point must be three finite numbers (mm), got {p}")
         if not ct.contains_lps(p[None], margin=0.5)[0]:
-            lo, hi = ct.bounds_lps()
-            raise PointError(f"the {name} point RAS {np.round(lps_to_ras(p), 1).tolist()} mm lies outside the volume "
-                             f"(LPS bounds {np.round(lo, 1).tolist()} to {np.round(hi, 1).tolist()}); "
-                             "place it inside the stomach")
+            raise PointError(outside_message(ct, name, p))
         pts.append(p)
     if np.linalg.norm(pts[0] - pts[1]) < 10.0:
         raise PointError(f"the cardia and pylorus are only {np.linalg.norm(pts[0] - pts[1]):.1f} mm apart; "
@@ -239,7 +255,7 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     del lumen
     with timed_stage(prog, "wall region", seconds, *FRONT_STAGES[1][1:]):
         wall = wall_region(lumen_c, crop.spacing, params.wall_thickness_mm)
-    with timed_stage(prog, "centreline", seconds, *FRONT_STAGES[2][1:]) as report:
+    with timed_stage(prog, "centerline", seconds, *FRONT_STAGES[2][1:]) as report:
         cl = compute_centerline(lumen_c, crop, cardia, pylorus, step_mm=params.centerline_step_mm,
                                 max_snap_mm=params.max_snap_mm, progress=report)
     warnings += _check_centerline(cl, cell_mm)

@@ -81,22 +81,22 @@ class SolverParameters(_Group):
     """The mass-spring-damper simulation: Newmark-beta constants, forces and termination (unit-free, kappa in mm)."""
 
     kappa: float = _p(0.5, "termination threshold on |D(a-1) - D(a)| in mm", 0.0, 100.0, lo_open=True)
-    beta: float = _p(0.25, "Newmark beta", 0.0, 0.5, lo_open=True)
-    gamma: float = _p(0.5, "Newmark gamma", 0.0, 1.0, lo_open=True)
-    time_step: float = _p(1.0, "time step h", 0.0, 100.0, lo_open=True)
-    spring_stiffness: float = _p(1.0, "spring stiffness", 0.0, 1e4, lo_open=True)
-    damping: float = _p(0.5, "dashpot coefficient per spring (relative velocity)", 0.0, 1e4)
-    mass_damping: float = _p(0.2, "viscous damping per unit mass (absolute velocity)", 0.0, 1e4)
-    unfolding_stiffness: float = _p(10.0, "pull of the cut edges toward their destination points", 0.0, 1e4,
+    beta: float = _p(0.25, "Newmark beta (unit-free)", 0.0, 0.5, lo_open=True)
+    gamma: float = _p(0.5, "Newmark gamma (unit-free)", 0.0, 1.0, lo_open=True)
+    time_step: float = _p(1.0, "time step h (simulation time units: the model's unit mass and stiffness)", 0.0, 100.0, lo_open=True)
+    spring_stiffness: float = _p(1.0, "spring stiffness (unit-free: the model's force per unit strain)", 0.0, 1e4, lo_open=True)
+    damping: float = _p(0.5, "dashpot coefficient per spring on the relative velocity (unit-free)", 0.0, 1e4)
+    mass_damping: float = _p(0.2, "viscous damping per unit mass on the absolute velocity (unit-free)", 0.0, 1e4)
+    unfolding_stiffness: float = _p(10.0, "pull of the cut edges toward their destination points (unit-free, per spring stiffness)", 0.0, 1e4,
                                     lo_open=True)
-    flattening_stiffness: float = _p(0.3, "pull toward the unfolded plane (0: the paper's forces only)", 0.0, 1e4)
+    flattening_stiffness: float = _p(0.3, "pull toward the unfolded plane (unit-free, per spring stiffness; 0: the paper's forces only)", 0.0, 1e4)
     ramp_iterations: int = _p(30, "iterations of guided destinations and flattening ramp (0: the paper's fixed g)",
                               0, 10000)
-    max_iterations: int = _p(300, "iteration cap", 1, 100000)
-    min_iterations: int = _p(5, "iterations before the kappa test may stop", 0, 100000)
-    inner_iterations: int = _p(2, "local/global sweeps per step (spring directions)", 1, 100)
-    integrator: str = _p("newmark", "integrator", choices=INTEGRATORS)
-    max_retries: int = _p(4, "time-step halvings after a divergence", 0, 20)
+    max_iterations: int = _p(300, "iteration cap (iterations)", 1, 100000)
+    min_iterations: int = _p(5, "iterations before the kappa test may stop (iterations)", 0, 100000)
+    inner_iterations: int = _p(2, "local/global sweeps per step for the spring directions (sweeps)", 1, 100)
+    integrator: str = _p("newmark", "time integrator", choices=INTEGRATORS)
+    max_retries: int = _p(4, "time-step halvings after a divergence (count)", 0, 20)
 
 
 @dataclass

@@ -52,12 +52,21 @@ class UnfoldResult:
     incision_lps: np.ndarray
     lumen_crop: Volume | None = field(default=None, repr=False)
     _distortion: object = field(default=None, repr=False)
+    _orientation: dict | None = field(default=None, repr=False)
 
-    def write(self, out_dir, landmarks_lps: dict | None = None) -> dict:
-        """Write the output files into ``out_dir`` all together or not at all; returns {name: path}."""
+    def write(self, out_dir, landmarks_lps: dict | None = None, view_size: int | None = None,
+              dicom_study: dict | None = None) -> dict:
+        """Write the output files into ``out_dir`` all together or not at all; returns {name: path}.
+
+        ``landmarks_lps``: named LPS points (mm) of the CT to map (and mark on the view); ``view_size``: width in
+        pixels of each panel of ``view.png`` (default: the view's own width, at least 512); ``dicom_study``: when
+        given (a dict, {} for a new study), also ``dicom/`` with the view as a secondary capture and the unfolded
+        volume as a CT series carrying those patient/study tags (``dicom_export.source_study_tags``).
+        """
         from . import io as suio
         from .distortion import write_distortion
-        from .view import save_png, shade_first_hit
+        from .figure import write_view
+        from .view import shade_first_hit
         from .wall_model import write_vtu
 
         os.makedirs(out_dir, exist_ok=True)
@@ -70,7 +79,9 @@ class UnfoldResult:
                 return os.path.join(tmp, name)
             suio.write_volume(self.unfolded, path("unfolded.nrrd"))
             view = shade_first_hit(self.unfolded)  # shaded once, for the view and its distortion overlay
-            save_png(view, path("view.png"), self.unfolded.spacing)
+            mapped = self.map_landmarks(landmarks_lps) if landmarks_lps else {}
+            self.report["view"] = write_view(self.unfolded, path("view.png"), view, self.distortion(),
+                                             self.orientation(), view_size, mapped)
             write_distortion(self.unfolded, self.distortion(), path("distortion.nrrd"), path("distortion.png"), view)
             write_vtu(self.mesh.rest_lps, self.mesh.cells, path("model_rest.vtu"))
             write_vtu(self.mesh.unfolded_lps, self.mesh.cells, path("model_unfolded.vtu"))
@@ -78,18 +89,34 @@ class UnfoldResult:
             suio.write_markups_curve(path("centerline.mrk.json"), self.centerline_lps, "centerline",
                                      color=(0.2, 0.8, 1.0))
             if landmarks_lps:
-                mapped = self.map_landmarks(landmarks_lps)
                 ok = {k: v for k, v in mapped.items() if np.all(np.isfinite(v))}
                 self.report.landmarks = {k: {"original_lps": np.asarray(landmarks_lps[k]).tolist(),
                                              "unfolded_lps": (np.asarray(v).tolist() if k in ok else None)}
                                          for k, v in mapped.items()}
                 suio.write_markups_fiducials(path("landmarks_unfolded.mrk.json"), ok, "landmarks_unfolded")
+            if dicom_study is not None:
+                self._write_dicom(path("dicom"), os.path.join(tmp, "view.png"), dicom_study)
             suio.atomic_write_text(path("report.json"), self.report.to_json())
             for name, final in names.items():
+                if os.path.isdir(final):
+                    shutil.rmtree(final)
                 os.replace(os.path.join(tmp, name), final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         return names
+
+    def _write_dicom(self, folder: str, view_png: str, study: dict) -> None:
+        """``folder``/view.dcm (secondary capture of view.png) and ``folder``/unfolded/ (CT series), study tags kept."""
+        import SimpleITK as sitk
+
+        from .dicom_export import write_ct_series, write_secondary_capture
+
+        os.makedirs(folder)
+        write_secondary_capture(sitk.GetArrayFromImage(sitk.ReadImage(view_png)), os.path.join(folder, "view.dcm"),
+                                study)
+        write_ct_series(self.unfolded, os.path.join(folder, "unfolded"), study)
+        self.report["dicom"] = {"folder": "dicom", "study_from_source": bool(study),
+                                "patient_id": study.get("0010|0020"), "study_uid": study.get("0020|000d")}
 
     def distortion(self, progress=None):
         """The view's DistortionMap (area and length scale per pixel), computed once (``progress(fraction)``)."""
@@ -99,6 +126,15 @@ class UnfoldResult:
             self._distortion = distortion_map(self.unfolded, self.mesh, progress)
         return self._distortion
 
+    def orientation(self) -> dict:
+        """Which anatomy the view's edges and halves show (``figure.orientation``, measured on the model)."""
+        from .figure import orientation
+
+        if self._orientation is None:
+            self._orientation = orientation(self.unfolded, self.mesh, self.centerline_lps, self.incision_lps,
+                                            self.report.incision.get("side", "user"))
+        return self._orientation
+
     def map_landmarks(self, points_lps: dict) -> dict:
         """Map named LPS points (mm) of the original CT into the unfolded volume's LPS frame (NaN if not on the wall)."""
         keys = list(points_lps)
@@ -107,6 +143,25 @@ class UnfoldResult:
         pts = np.array([points_lps[k] for k in keys], float)
         mapped = self.correspondence.to_unfolded(pts)
         return {k: mapped[i] for i, k in enumerate(keys)}
+
+
+def run_info(prep: Prepared, method, unfolded: Volume) -> dict:
+    """The report's ``run`` section: date (UTC), versions, platform, and the method and sizes actually used (mm)."""
+    import datetime
+    import platform
+
+    import scipy
+    import SimpleITK as sitk
+    from vtkmodules.vtkCommonCore import vtkVersion
+
+    ct = prep.ct
+    return {"date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "method": method.name, "grid_size_voxels": int(prep.params.grid_voxels(ct.spacing)),
+            "cell_mm": [float(v) for v in prep.cell_mm], "view_pixel_mm": [float(v) for v in unfolded.spacing[:2]],
+            "versions": {"StomachUnfoldLib": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
+                         "SimpleITK": sitk.Version_VersionString(), "vtk": vtkVersion.GetVTKVersion(),
+                         "python": platform.python_version()},
+            "platform": platform.platform()}
 
 
 def _report(prep: Prepared, method, out, seconds: dict) -> Report:
@@ -127,7 +182,7 @@ def _report(prep: Prepared, method, out, seconds: dict) -> Report:
         unfolded_volume={"size_ijk": list(vol.size), "spacing_mm": vol.spacing.tolist(),
                          "origin_lps": vol.origin.tolist(), "direction": vol.direction.tolist()},
         seconds=seconds, peak_memory_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        warnings=prep.warnings + list(out.warnings))
+        warnings=prep.warnings + list(out.warnings), extra={"run": run_info(prep, method, vol)})
 
 
 def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None = None,
@@ -161,5 +216,10 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
                                                     result.centerline_lps, progress=lambda f: report(0.2 + 0.8 * f),
                                                     folded=dmap.multiple if out.mesh.kind == "triangle" else None)
             result.report.quality["distortion_map"] = dmap.summary()
+    from .plausibility import plausibility_warnings
+
+    result.report.warnings += plausibility_warnings(
+        ct, prep.cardia_lps, prep.pylorus_lps, (prep.air_info or {}).get("volume_ml"), result.report.quality,
+        out.unfolded, result.orientation() if params.quality else None)
     seconds["total"] = time.perf_counter() - t_all
     return result

@@ -52,11 +52,37 @@ class Report:
     landmarks: dict | None = None
     extra: dict = field(default_factory=dict)
 
+    def summary(self) -> dict:
+        """The run at a glance (the report's first section): grade, visible and trusted shares, failure parts, seconds."""
+        q = self.quality or {}
+        out = {"grade": q.get("grade"), "visible_fraction": q.get("visible_fraction"),
+               "failure_parts": q.get("failure_parts"),
+               "trusted_length_fraction": (q.get("distortion_map") or {}).get("trusted_fraction"),
+               "method": self.method.get("name"), "seconds_total": self.seconds.get("total"),
+               "warnings": len(self.warnings)}
+        if "markers" in self.extra:
+            m = self.extra["markers"]
+            out["markers_seen"] = f"{m.get('seen')}/{m.get('total')}"
+        return out
+
     def to_dict(self) -> dict:
-        """The report as plain JSON-ready data (``extra`` entries at the top level)."""
+        """The report as plain JSON-ready data: the summary and the grade first, ``extra`` entries after the
+        fixed fields, and the method's section (with the mass-spring D trace at its very end) last."""
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "extra"}
         d = {k: v for k, v in d.items() if v is not None}
-        return to_jsonable({**d, **self.extra})
+        first = {"summary": self.summary()}
+        for k in ("quality", "warnings", "run"):
+            if k in d:
+                first[k] = d.pop(k)
+            elif k in self.extra:
+                first[k] = self.extra[k]
+        method = d.pop("method")
+        sim = method.get("simulation")
+        if isinstance(sim, dict) and "D_trace" in sim:
+            sim = {**{k: v for k, v in sim.items() if k != "D_trace"}, "D_trace": sim["D_trace"]}
+            method = {**{k: v for k, v in method.items() if k != "simulation"}, "simulation": sim}
+        rest = {k: v for k, v in self.extra.items() if k not in first}
+        return to_jsonable({**first, **d, **rest, "method": method})
 
     def to_json(self, indent: int = 2) -> str:
         """The report as JSON text."""

@@ -14,7 +14,7 @@ import numpy as np
 from .geometry import Volume
 
 __all__ = ["first_hit", "clean_outline", "edge_sharpness", "staircase_smoothing_vox", "surface_height", "ripple_mm",
-           "smooth_mucosa_mask", "display_volume", "shade_first_hit", "render_view", "save_png",
+           "smooth_mucosa_mask", "display_volume", "shade_first_hit", "render_view", "save_png", "write_png",
            "STAIRCASE_SMOOTH_VOX", "SHARPNESS_RAMP", "HEIGHT_SIGMA_MM", "SPIKE_WIDTH_PX"]
 
 #: Gaussian blur (voxels) of the unfolded volume before the surface is located, for data whose air/wall edge
@@ -237,18 +237,27 @@ def shade_first_hit(unfolded: Volume, threshold_hu: float = -400.0, marker_hu: f
 
 
 def save_png(img: np.ndarray, path: str, spacing=(1.0, 1.0), min_pixels: int = 512) -> str:
-    """Write an RGB image (rows top to bottom) of a view with pixel ``spacing`` (mm, i then j) to PNG, upscaled."""
+    """Write an RGB image (rows top to bottom) of a view with pixel ``spacing`` (mm, i then j) to PNG.
+
+    The image is resampled bilinearly to square pixels, at least ``min_pixels`` wide (small views are enlarged
+    for legibility by interpolation, not by repeating pixels).
+    """
+    from .figure import resize_rgb
+
+    ratio = float(spacing[1]) / float(spacing[0])
+    w = max(int(img.shape[1]), int(min_pixels))
+    h = max(1, int(round(img.shape[0] * ratio * w / max(img.shape[1], 1))))
+    if (h, w) != img.shape[:2]:
+        img = np.clip(np.rint(resize_rgb(img, (h, w))), 0, 255).astype(np.uint8)
+    return write_png(img, path)
+
+
+def write_png(img: np.ndarray, path: str) -> str:
+    """Write an RGB uint8 image (rows top to bottom) to a PNG file as it is; OSError when it cannot."""
     from vtkmodules.util import numpy_support as ns
     from vtkmodules.vtkCommonDataModel import vtkImageData
     from vtkmodules.vtkIOImage import vtkPNGWriter  # the submodules alone: `import vtk` costs 0.7 s
 
-    # resample to square pixels, then upscale small views for legibility
-    ratio = float(spacing[1]) / float(spacing[0])
-    rows = max(1, int(round(img.shape[0] * ratio)))
-    ri = np.clip((np.arange(rows) / ratio).astype(int), 0, img.shape[0] - 1)
-    img = img[ri]
-    f = max(1, int(np.ceil(min_pixels / max(img.shape[1], 1))))
-    img = np.repeat(np.repeat(img, f, axis=0), f, axis=1)
     h, w = img.shape[:2]
     vimg = vtkImageData()
     vimg.SetDimensions(w, h, 1)

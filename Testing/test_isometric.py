@@ -166,3 +166,50 @@ def test_cancel_raises():
     with pytest.raises(Cancelled):
         unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
                UnfoldParameters(method="isometric", wall_thickness_mm=4.0), progress=cb)
+
+
+def _half_cylinder(r=20.0, length=100.0, n_theta=40, n_z=60):
+    """Half a cylinder (theta 0..pi, LPS mm) as a triangle grid: its geodesics are straight lines once unrolled."""
+    th = np.linspace(0.0, np.pi, n_theta)
+    z = np.linspace(0.0, length, n_z)
+    Z, T = np.meshgrid(z, th, indexing="ij")
+    v = np.stack([r * np.cos(T), r * np.sin(T), Z], -1).reshape(-1, 3)
+    flat = np.stack([Z, r * T], -1).reshape(-1, 2)
+    return v, _grid(n_z, n_theta), flat
+
+
+def test_geodesic_pairs_match_the_unrolled_distance():
+    from StomachUnfoldLib.methods.isometric import geodesic_pairs
+
+    v, f, flat = _half_cylinder()
+    a, b, g = geodesic_pairs(v, f, n_landmarks=60)
+    assert len(g) > 200 and g.min() >= 10.0 and g.max() <= 80.0
+    true = np.linalg.norm(flat[a] - flat[b], axis=1)
+    rel = g / true - 1.0
+    # Dijkstra over edges and two-ring chords: never shorter than the true geodesic, at most a few % longer
+    assert rel.min() > -0.005 and np.median(rel) < 0.03 and rel.max() < 0.10
+
+
+def test_distance_terms_keep_long_lengths_on_a_curved_cap():
+    """On a sphere cap (not developable) the distance terms bring landmark-pair lengths closer to their geodesics
+    than ARAP alone, without stretching any edge past the judge's 1.5x."""
+    from StomachUnfoldLib.methods.isometric import distance_terms
+
+    r = 40.0
+    th = np.linspace(0.05, 1.1, 30)
+    ph = np.linspace(0.0, 2 * np.pi, 60, endpoint=False)
+    T, P = np.meshgrid(th, ph, indexing="ij")
+    v = np.stack([r * np.sin(T) * np.cos(P), r * np.sin(T) * np.sin(P), r * np.cos(T)], -1).reshape(-1, 3)
+    f = _grid(len(th), len(ph), closed_v=True)                 # an annulus: cut it open along one meridian
+    v, f, _ = cut_along_path(v, f, np.arange(len(th)) * len(ph), ends_on_boundary=True)
+    uv0 = v[:, :2].copy()
+    pairs = distance_terms(v, f, n_landmarks=120)
+    a, b, g, _ = pairs
+
+    def pair_error(uv):
+        return float(np.median(np.abs(np.log(np.linalg.norm(uv[a] - uv[b], axis=1) / g))))
+
+    plain, _ = arap(v, f, uv0, max_iter=80)
+    kept, _ = arap(v, f, uv0, max_iter=80, pairs=pairs)
+    assert pair_error(kept) < 0.9 * pair_error(plain)
+    assert stretch_stats(v, f, kept)["edge_ratio_max"] < 1.5

@@ -167,7 +167,7 @@ def test_cancel(phantoms, method):
 
     with pytest.raises(Cancelled):
         METHODS[method](ct, truth["cardia_lps"], truth["pylorus_lps"], progress=cb)
-    assert "centreline" in seen and seen[-1] == late
+    assert "centerline" in seen and seen[-1] == late
 
 
 def test_bad_input(phantoms):

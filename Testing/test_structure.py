@@ -74,7 +74,8 @@ def test_each_parameter_has_one_default_and_the_command_line_follows_it():
     actions = {a.dest: a for a in unfold._actions}
     for s in specs:
         a = actions[s.name]
-        assert a.option_strings == [s.flag]
+        # booleans as --flag/--no-flag
+        assert a.option_strings == ([s.flag, "--no-" + s.flag[2:]] if s.kind is bool else [s.flag])
         assert a.default == s.default, s.name
         assert (tuple(a.choices) if a.choices else None) == s.choices, s.name
     # the Python keywords are the same names, flat or grouped, each with its one default

@@ -1,0 +1,75 @@
+"""Plausibility warnings of a finished run: a "stomach" too small to be one, a point on the scan's first or last
+slice, and for a grade of fair or worse which failure parts the view has and where."""
+from __future__ import annotations
+
+import numpy as np
+
+from .geometry import Volume
+
+__all__ = ["plausibility_warnings", "failure_regions", "MIN_STOMACH_ML"]
+
+#: A lumen smaller than this (mL) is an air pocket, not a stomach (a gas-distended stomach holds hundreds of mL).
+MIN_STOMACH_ML = 50.0
+
+
+def failure_regions(unfolded: Volume, orient: dict | None = None, min_area_mm2: float = 25.0) -> list[dict]:
+    """The view's overlap and hole regions over ``min_area_mm2`` (mm^2): kind, area (mm^2) and where on the view.
+
+    Where: the third along the view (near the left or right end, or the middle, named by ``orient``'s ends)
+    and the half (``orient``'s upper or lower half), from the region's centroid.
+    """
+    from scipy import ndimage
+
+    from .quality import layer_runs
+    from .view import first_hit
+
+    orient = orient or {}
+    k, _ = first_hit(unfolded)
+    seen = k >= 0
+    kinds = {"overlap": ndimage.binary_opening(layer_runs(unfolded) > 1, structure=np.ones((2, 2), bool)),
+             "hole": ndimage.binary_fill_holes(seen) & ~seen}
+    px = float(unfolded.spacing[0] * unfolded.spacing[1])
+    nj, ni = seen.shape
+    out = []
+    for kind, m in kinds.items():
+        lab, n = ndimage.label(m)
+        for r in range(1, n + 1):
+            jj, ii = np.nonzero(lab == r)
+            area = len(jj) * px
+            if area <= min_area_mm2:
+                continue
+            fi, fj = ii.mean() / max(ni - 1, 1), jj.mean() / max(nj - 1, 1)
+            along = (f"near the {orient.get('left') or 'left end'}" if fi < 1 / 3 else
+                     f"near the {orient.get('right') or 'right end'}" if fi > 2 / 3 else "mid-way")
+            half = orient.get("upper_half") if fj > 0.5 else orient.get("lower_half")
+            where = along + (f", {half} half" if half else (", upper half" if fj > 0.5 else ", lower half"))
+            out.append({"kind": kind, "area_mm2": float(area), "where": where,
+                        "centroid_ij": [float(ii.mean()), float(jj.mean())]})
+    return out
+
+
+def plausibility_warnings(ct: Volume, cardia_lps, pylorus_lps, lumen_ml: float | None, quality: dict | None,
+                          unfolded: Volume | None = None, orient: dict | None = None) -> list[str]:
+    """Warnings (plain sentences) on a finished run: lumen under MIN_STOMACH_ML (mL), a point (LPS mm) on the CT's
+    first or last slice, and a grade of fair or worse with its failure parts and where they lie on the view."""
+    out = []
+    if lumen_ml is not None and lumen_ml < MIN_STOMACH_ML:
+        out.append(f"the stomach region holds only {lumen_ml:.0f} mL: probably a gas pocket, not the whole stomach; "
+                   "pass --mask with a stomach segmentation (e.g. TotalSegmentator's, label 6)")
+    nk = int(ct.size[2])
+    for name, p in (("cardia", cardia_lps), ("pylorus", pylorus_lps)):
+        k = float(ct.lps_to_index(np.asarray(p, float)[None])[0][2])
+        if k < 1.0 or k > nk - 2.0:
+            which = "first" if k < 1.0 else "last"
+            out.append(f"the {name} point lies on the {which} slice of the scan: the stomach is probably cut off "
+                       "by the scan range, so its end is missing from the view")
+    if quality and quality.get("grade") in ("fair", "bad"):
+        parts = failure_regions(unfolded, orient) if unfolded is not None else []
+        txt = "; ".join(f"{p['kind']} of {p['area_mm2']:.0f} mm^2 {p['where']}" for p in parts)
+        bent = quality.get("bent_area_fraction") or 0.0
+        if bent > 0:
+            txt = (txt + "; " if txt else "") + f"{100 * bent:.1f} % of the view bent over 10 mm off its plane"
+        out.append(f"grade {quality['grade']}: {100 * (1 - quality.get('visible_fraction', 0)):.0f} % of the mucosa "
+                   f"hidden, {quality.get('failure_parts', 0)} failure parts" + (f" ({txt})" if txt else "")
+                   + "; read those parts on the original CT")
+    return out
