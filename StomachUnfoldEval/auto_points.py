@@ -78,9 +78,11 @@ def found_versus_truth(ct, truth: dict, labels=None):
     return found.cardia_lps, found.pylorus_lps, summary
 
 
-def point_benchmark(out_dir: str, quick: bool = False, size: str = "tiny") -> dict:
+def point_benchmark(out_dir: str, quick: bool = False, size: str = "tiny", draw=None) -> dict:
     """Bench part ``autopoints``: the found points against the truth on the tuning seeds (0-29) and the held-out seeds
-    (1000-1029), from the gas and from both TotalSegmentator numberings; writes autopoints.json and autopoints.md."""
+    (1000-1029), from the gas and from both TotalSegmentator numberings; writes autopoints.json and autopoints.md.
+
+    ``draw(seed)``: the (volume, truth, labels) of a seed (default: ``random_stomach(seed, size, labels=True)``)."""
     import json
     import os
 
@@ -91,7 +93,7 @@ def point_benchmark(out_dir: str, quick: bool = False, size: str = "tiny") -> di
     rows = []
     for group, seeds in groups:
         for seed in seeds:
-            case = random_stomach(seed, size=size, labels=True)
+            case = draw(seed) if draw is not None else random_stomach(seed, size=size, labels=True)
             for source in ("gas", "total", "total_v1"):
                 try:
                     r = point_errors(seed, size, source, case=case)
