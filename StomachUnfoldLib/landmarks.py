@@ -50,6 +50,8 @@ CONFIDENCE_THRESHOLD = 0.5
 #: How far (mm) inside the lumen the points are put: the cardia past the opening, the pylorus before it.
 CARDIA_DEPTH_MM = 5.0
 PYLORUS_DEPTH_MM = 3.0
+#: The thickest stomach wall (mm) looked through for the gas from a tube label's contact.
+MAX_WALL_MM = 10.0
 #: How far (mm) back from the far end of the gas the pylorus is looked for past a thin (duodenal) tail.
 PYLORUS_MAX_WALK_MM = 8.0
 #: Weight of the distance to the patient's right (mm per mm) added to the geodesic length when picking the far end.
@@ -223,7 +225,7 @@ def _opening(ct_c: Volume, stomach: np.ndarray, tube: np.ndarray, depth_mm: floa
     ray = o[None] + ts[:, None] * direction[None]
     hu = ct_c.sample(ray, order=1, cval=0.0)
     ins = s_vol.sample(ray, order=0, cval=0) > 0.5
-    gas = np.nonzero((hu < threshold_hu) & ins)[0]
+    gas = np.nonzero((hu < threshold_hu) & ins & (ts <= MAX_WALL_MM))[0]   # gas deeper is past retained fluid
     conf = 0.95 if gap <= reach else max(0.6, 0.95 - 0.03 * gap)
     if len(gas):
         depth = ts[gas[0]] + depth_mm
