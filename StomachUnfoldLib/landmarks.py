@@ -492,7 +492,7 @@ def find_stomach_gas(ct: Volume, threshold_hu: float = -500.0) -> tuple[np.ndarr
           f"candidate(s) (runner-up score {ratio:.2f} of it), {len(rows) - len(cands)} gas region(s) excluded "
           f"({', '.join(sorted(set(r['excluded'] for r in rows if r['excluded']))) or 'none'})"]
     return lab == best["id"], {"volume_ml": best["ml"], "runner_up_ratio": ratio, "candidates": len(cands),
-                               "evidence": ev}
+                               "left": bool(best["x"] > body_x), "evidence": ev}
 
 
 def points_from_gas(ct: Volume, threshold_hu: float = -500.0, max_snap_mm: float = 20.0) -> AutoPoints:
@@ -507,6 +507,8 @@ def points_from_gas(ct: Volume, threshold_hu: float = -500.0, max_snap_mm: float
     shape = _shape_points(ct_c, lumen_c, gas=True)
     region_conf = (0.5 + 0.5 * float(np.clip(1.5 * (1.0 - info["runner_up_ratio"]), 0.0, 1.0)))
     region_conf *= float(np.clip(info["volume_ml"] / 150.0, 0.0, 1.0))
+    if not info["left"]:  # the stomach lies under the left hemidiaphragm: gas on the right is probably bowel
+        region_conf *= 0.5
     evidence = info["evidence"] + shape["evidence"]
     if info["volume_ml"] < 150.0:
         evidence.append(f"only {info['volume_ml']:.0f} mL of gas: the stomach is probably not distended; unsure")
