@@ -85,3 +85,29 @@ def test_auto_warns_when_unsure_and_still_places_best_guesses(gui, stomach, monk
     assert len(warnings) == 1 and "unsure" in warnings[0][0]
     assert set(_points(widget._parameterNode.pointsNode)) == {"cardia", "pylorus"}
     assert not widget.lastAutoPoints.confident
+
+
+def test_auto_reads_a_totalsegmentator_label_map_picked_as_the_mask(gui, stomach, monkeypatch):
+    from StomachUnfoldEval.auto_points import totalseg_labels
+    from StomachUnfoldLib.geometry import lps_to_ras
+
+    module, widget, scene = gui
+    (vol, truth, lab), _ = stomach
+    seg = totalseg_labels(vol, lab, truth, "total")
+    widget._parameterNode.inputVolume = widget.logic.volumeNodeFromVolume(vol, "r0")
+    labelNode = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "total")
+    labelNode.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(vol.index_to_ras_matrix))
+    slicer.util.updateVolumeFromArray(labelNode, np.ascontiguousarray(seg))
+    widget._parameterNode.maskNode = labelNode
+    warnings = []
+    monkeypatch.setattr(slicer.util, "warningDisplay", lambda *a, **k: warnings.append(a))
+    before = {scene.GetNthNode(i).GetID() for i in range(scene.GetNumberOfNodes())}
+    widget.ui.autoPointsButton.click()
+    found = widget.lastAutoPoints
+    assert found.source == "segmentation" and found.convention == "total" and warnings == []
+    assert found.labels == {"stomach": 6, "esophagus": 15, "duodenum": 19}
+    pts = _points(widget._parameterNode.pointsNode)
+    assert np.linalg.norm(pts["cardia"][0] - lps_to_ras(np.asarray(truth["cardia_lps"]))) <= 10.0
+    added = {scene.GetNthNode(i).GetClassName() for i in range(scene.GetNumberOfNodes())
+             if scene.GetNthNode(i).GetID() not in before}
+    assert all("Markups" in c for c in added), added  # only the new point list: no label map left behind
