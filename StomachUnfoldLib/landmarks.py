@@ -54,6 +54,8 @@ PYLORUS_DEPTH_MM = 3.0
 MAX_WALL_MM = 10.0
 #: How far (mm) back from the far end of the gas the pylorus is looked for past a thin (duodenal) tail.
 PYLORUS_MAX_WALK_MM = 8.0
+#: Weight of the usual cardia direction against the tissue-tube evidence (score per unit of 1 - cos angle).
+CARDIA_PRIOR_WEIGHT = 1.5
 #: Weight of the distance to the patient's right (mm per mm) added to the geodesic length when picking the far end.
 RIGHTWARD_WEIGHT = 1.0
 
@@ -330,7 +332,7 @@ def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.
     cosang = (v @ d0) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
     support = v @ d0
     level = n_out[:, 1] > 0.6          # a flat air-fluid level faces posterior (supine): no opening there
-    score = tissue - 1.5 * (1.0 - cosang) + 0.01 * (support - support.max()) - 10.0 * level
+    score = tissue - CARDIA_PRIOR_WEIGHT * (1.0 - cosang) + 0.01 * (support - support.max()) - 10.0 * level
     best = int(np.argmax(score))
     return cand[best], n_out[best], float(tissue[best])
 
