@@ -307,6 +307,53 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
             return read_label_volume(self.volumeFromNode(maskNode), referenceVolume)
         raise ValueError(_("{name} is neither a segmentation nor a label map volume").format(name=maskNode.GetName()))
 
+    def labelsFromNode(self, maskNode, referenceVolume):
+        """(int label array on the reference Volume's grid, {label value: segment name and terminology} or None)
+        from a multi-label map volume or a segmentation node (exported as maskFromNode does; the scene is kept)."""
+        from StomachUnfoldLib.landmarks import labels_on_grid
+
+        if maskNode is None:
+            return None, None
+        if maskNode.IsA("vtkMRMLSegmentationNode"):
+            scene = self._scene()
+            before = {scene.GetNthNode(i).GetID() for i in range(scene.GetNumberOfNodes())}
+            try:
+                tmp = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode")
+                if not slicer.vtkSlicerSegmentationsModuleLogic.ExportVisibleSegmentsToLabelmapNode(maskNode, tmp):
+                    raise ValueError(_("could not export {name} to a label map").format(name=maskNode.GetName()))
+                seg = maskNode.GetSegmentation()
+                names = {}
+                for i in range(seg.GetNumberOfSegments()):
+                    segment = seg.GetNthSegment(i)
+                    tag = vtk.mutable("") if hasattr(vtk, "mutable") else None
+                    term = ""
+                    if tag is not None and segment.GetTag("TerminologyEntry", tag):
+                        term = str(tag)
+                    names[i + 1] = f"{segment.GetName()} {term}".strip()
+                return labels_on_grid(self.volumeFromNode(tmp), referenceVolume), names
+            finally:
+                added = [scene.GetNthNode(i) for i in range(scene.GetNumberOfNodes())]
+                for node in reversed([n for n in added if n.GetID() not in before]):
+                    scene.RemoveNode(node)
+        return labels_on_grid(self.volumeFromNode(maskNode), referenceVolume), None
+
+    def autoPoints(self, volumeNode, pointsNode, maskNode=None):
+        """Find the cardia and pylorus (StomachUnfoldLib.landmarks) and put them into ``pointsNode`` as control points
+        labelled 'cardia' and 'pylorus' (RAS world mm; earlier ones with those labels replaced); the AutoPoints."""
+        from StomachUnfoldLib.geometry import lps_to_ras
+        from StomachUnfoldLib.landmarks import find_points
+
+        ct = self.volumeFromNode(volumeNode)
+        labels, names = self.labelsFromNode(maskNode, ct)
+        found = find_points(ct, labels, names)
+        for label, p in (("cardia", found.cardia_lps), ("pylorus", found.pylorus_lps)):
+            for i in reversed(range(pointsNode.GetNumberOfControlPoints())):
+                if (pointsNode.GetNthControlPointLabel(i) or "").strip().lower() == label:
+                    pointsNode.RemoveNthControlPoint(i)
+            index = pointsNode.AddControlPointWorld(vtk.vtkVector3d(*lps_to_ras(p)), label)
+            pointsNode.SetNthControlPointLocked(index, False)
+        return found
+
     @staticmethod
     def _maskSegment(segmentationNode, segmentId=None):
         """The ID of the stomach segment of a segmentation node: ``segmentId``, else its only visible segment."""
@@ -659,6 +706,7 @@ class StomachUnfoldWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._findingNodes = []
         self._linking = False
         self._running = False
+        self.lastAutoPoints = None  # the AutoPoints of the last Auto click
         self._progressDialog = None
 
     def setup(self) -> None:
@@ -678,6 +726,7 @@ class StomachUnfoldWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.pylorusPlaceWidget.placeButton().connect("clicked(bool)", lambda on: self._armLabel("pylorus", on))
         self.ui.pointsSelector.connect("currentNodeChanged(vtkMRMLNode*)", self._onPointsNodeChanged)
         self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
+        self.ui.autoPointsButton.connect("clicked(bool)", self.onAutoPointsButton)
 
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
@@ -932,6 +981,30 @@ class StomachUnfoldWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         d.value = min(99, max(0, int(round(100 * fraction))))
         slicer.app.processEvents()
         return not d.wasCanceled
+
+    def onAutoPointsButton(self) -> None:
+        """Fill the cardia and pylorus automatically (the user can still move them); ask to check them when unsure."""
+        p = self._parameterNode
+        with slicer.util.tryWithErrorDisplay(_("Finding the cardia and pylorus failed."), waitCursor=True):
+            if not self._ensureDependencies():
+                return
+            if p.inputVolume is None:
+                raise ValueError(_("choose the CT volume first"))
+            if p.pointsNode is None:
+                p.pointsNode = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "StomachPoints")
+            found = self.logic.autoPoints(p.inputVolume, p.pointsNode, p.maskNode)
+            self._rememberPoints(p.pointsNode)
+            self._checkCanApply()
+            text = _("Cardia and pylorus found from the {source} (confidence {c:.2f} and {q:.2f}).").format(
+                source=found.source, c=found.cardia_confidence, q=found.pylorus_confidence)
+            self.ui.resultsLabel.text = text
+            if not found.confident:
+                slicer.util.warningDisplay(
+                    _("The automatic cardia and pylorus are unsure (confidence {c:.2f} and {q:.2f}). Best guesses "
+                      "were placed: check them and move them to the oesophageal and duodenal ends of the stomach "
+                      "before Unfold.").format(c=found.cardia_confidence, q=found.pylorus_confidence),
+                    windowTitle=_("Stomach Unfold"))
+            self.lastAutoPoints = found
 
     def onApplyButton(self) -> None:
         """Unfold with a progress dialog; its Cancel stops the run and leaves the scene as it was."""

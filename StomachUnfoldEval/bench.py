@@ -15,7 +15,7 @@ import traceback
 
 import numpy as np
 
-from StomachUnfoldLib.errors import InputError, StomachUnfoldError
+from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .memory import memory_markdown, memory_plot, memory_runs
 
@@ -82,6 +82,11 @@ def _load(source: dict):
     if "random" in source or "hybrid" in source:
         ct, truth = _cached(source, source.get("_cache"))
         markers = {m["id"]: m["lps"] for m in truth["markers"]}
+        if source.get("auto_points"):  # zero clicks: the points found as `unfold --auto-points` finds them
+            from .auto_points import found_versus_truth
+
+            cardia, pylorus, auto = found_versus_truth(ct, truth)
+            return ct, cardia, pylorus, None, dict(markers, _truth=truth, _auto=auto)
         return ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]), None, dict(markers, _truth=truth)
     if "real" in source:
         from StomachUnfoldLib.io import read_label_volume, read_volume
@@ -124,6 +129,12 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
         row["load_seconds"] = time.perf_counter() - t
         row["size_ijk"] = list(ct.size)
         family = markers.pop("_truth", None) if markers else None
+        if markers and "_auto" in markers:
+            row["auto_points"] = markers.pop("_auto")
+            row["zero_clicks"] = True
+            if not row["auto_points"]["confident"]:
+                raise PointError(f"refused: the found points are unsure "
+                                 f"(confidence {row['auto_points']['confidence']:.2f})")
         wall = {} if family is not None else {"wall_thickness_mm": _wall(case["source"])}  # unseen: defaults
         params = {**wall, **case["params"], "method": case["method"]}
         res = unfold(ct, cardia, pylorus, UnfoldParameters(**params), mask=mask)
@@ -244,6 +255,20 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
                     cases.append(Case(f"{name}/{m}", src, {}, method=m, group="real"))
     if "stomachs" in parts:
         cases += family_cases(quick, data_dir)
+    if "zeroclicks" in parts:
+        cases += zero_click_cases(quick)
+    return cases
+
+
+def zero_click_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
+    """The default method on every random stomach from the points found automatically (zero clicks)."""
+    cache = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "stomach-unfold", "phantoms")
+    cases = []
+    for group, seeds in (("stomachs-tune", TUNE_SEEDS), ("stomachs-held-out", HELD_OUT_SEEDS)):
+        for seed in seeds[:3] if quick else seeds:
+            src = {"random": int(seed), "size": "small", "_cache": cache, "auto_points": True}
+            cases.append(Case(f"stomach-{seed}/{FAMILY_METHODS[0]}-zero-clicks", src, {}, method=FAMILY_METHODS[0],
+                              group=group))
     return cases
 
 
@@ -731,7 +756,8 @@ FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults we
 def family_summary(rows: list[dict], group: str) -> dict:
     """Per method over one family group: grades, visible fractions, markers, distortion against the bound, speed."""
     out = {}
-    rs = [r for r in rows if r["group"] == group]
+    zero = [r for r in rows if r["group"] == group and r.get("zero_clicks")]
+    rs = [r for r in rows if r["group"] == group and not r.get("zero_clicks")]
     by_volume: dict = {}
     for r in rs:
         by_volume.setdefault(r["name"].split("/")[0], {})[r["method"]] = r
@@ -773,7 +799,40 @@ def family_summary(rows: list[dict], group: str) -> dict:
                   "length_error_mm_mean": float(np.mean(err)) if err else None,
                   "length_error_mm_sd_of_means": float(np.std(err)) if err else None,
                   "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None}
+    if zero:
+        out.update(zero_click_summary(zero, rs))
     return out
+
+
+def zero_click_summary(zero: list[dict], two_click_rows: list[dict]) -> dict:
+    """The 'zero clicks' row: the default method from found points, with the family columns it can fill, and the
+    share of volumes whose found points lie within 10 mm and whose grade equals the two-click grade."""
+    ok = [r for r in zero if r.get("ok")]
+    q = [r["quality"] for r in ok]
+    mk = [x["markers"] for x in q if "markers" in x]
+    vis = [x["visible_fraction"] for x in q]
+    two = {r["name"].split("/")[0]: r for r in two_click_rows if r["method"] == FAMILY_METHODS[0] and r.get("ok")}
+    paired = [r for r in ok if r["name"].split("/")[0] in two]
+    same = sum(two[r["name"].split("/")[0]]["quality"]["grade"] == r["quality"]["grade"] for r in paired)
+    auto = [r["auto_points"] for r in zero if r.get("auto_points")]
+    dist = [x["pairwise_distance_distortion"] for x in mk if x.get("pairwise_distance_distortion") is not None]
+    return {f"{FAMILY_METHODS[0]}, zero clicks": {
+        "volumes": len(zero), "failed": len(zero) - len(ok),
+        "excellent": sum(x["grade"] == "excellent" for x in q),
+        "good_or_better": sum(x["grade"] in ("excellent", "good") for x in q),
+        "visible_median": float(np.median(vis)) if vis else None, "visible_min": float(np.min(vis)) if vis else None,
+        "markers_seen": sum(x["seen"] for x in mk), "markers_total": sum(x["total"] for x in mk),
+        "under_fluid_seen": 0, "under_fluid_total": 0, "dome_seen": 0, "dome_total": 0,
+        "distortion_median": float(np.median(dist)) if dist else None,
+        "distortion_max": float(np.max(dist)) if dist else None, "ratio_to_bound_median": None,
+        "ratio_to_bound_max": None, "stretched_max": float(max(x["broken_springs_fraction"] for x in q)) if q else None,
+        "inverted_max": float(max(x["inverted_fraction"] for x in q)) if q else None,
+        "visible_not_below_every_peer": 0, "length_error_mm_mean": None, "length_error_mm_sd_of_means": None,
+        "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None,
+        "points_within_10mm": sum(a["within_tolerance"] for a in auto), "refused": sum(not a["confident"] for a in auto),
+        "grade_as_two_clicks": same, "with_two_click_row": len(paired),
+        "cardia_error_mm_median": float(np.median([a["cardia_error_mm"] for a in auto])) if auto else None,
+        "pylorus_error_mm_median": float(np.median([a["pylorus_error_mm"] for a in auto])) if auto else None}}
 
 
 def family_markdown(rows: list[dict]) -> list[str]:
@@ -802,6 +861,13 @@ def family_markdown(rows: list[dict]) -> list[str]:
                      f"{f(v['stretched_max'] and 100 * v['stretched_max'], '{:.1f}')} | "
                      f"{f(v['inverted_max'] and 100 * v['inverted_max'], '{:.2f}')} | {f(v['seconds_median'], '{:.1f}')} |")
         L.append("")
+        for m, v in summ.items():
+            if "points_within_10mm" in v:
+                L.append(f"*{m}*: the points found (no clicks) lie within 10 mm of the true cardia and pylorus on "
+                         f"{v['points_within_10mm']}/{v['volumes']} volumes (median errors "
+                         f"{f(v['cardia_error_mm_median'], '{:.1f}')} and {f(v['pylorus_error_mm_median'], '{:.1f}')} "
+                         f"mm), {v['refused']} refused as unsure; the grade equals the two-click grade on "
+                         f"{v['grade_as_two_clicks']}/{v['with_two_click_row']} (volumes with a two-click row).\n")
         L.append("<details><summary>every volume</summary>\n")
         L.append("| volume / method | grade | visible % | parts | markers | distortion | bound | stretched % | s |")
         L.append("|---|---|---|---|---|---|---|---|---|")
@@ -841,7 +907,7 @@ def replot(out_dir: str = "docs/benchmark") -> list[str]:
 def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_size: bool = False,
                   scheduler: str | None = None, data_dir: str | None = None,
                   parts=("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling",
-                         "stomachs"),
+                         "stomachs", "zeroclicks", "autopoints"),
                   merge: bool = False) -> list[dict]:
     """Run the benchmark (all parts, or a quick subset) and write results.json, results.md and PNGs into out_dir.
 
@@ -874,4 +940,8 @@ def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_siz
                   default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
     with open(os.path.join(out_dir, "results.md"), "w") as f:
         f.write(_markdown(rows, full, meta, made))
+    if "autopoints" in parts:  # zero clicks: found points against the truth (autopoints.md), no unfolding
+        from .auto_points import point_benchmark
+
+        point_benchmark(out_dir, quick=quick)
     return rows

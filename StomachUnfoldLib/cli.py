@@ -97,6 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--pylorus", metavar="R,A,S", help="pylorus point in mm, Slicer's RAS frame, commas between")
     u.add_argument("--points", metavar="FILE", help="Slicer .mrk.json with control points 'cardia' and 'pylorus' "
                                                     "(or a phantom's truth .json: its markers are then scored)")
+    u.add_argument("--auto-points", action="store_true",
+                   help="find the cardia and pylorus automatically: from the organs of a TotalSegmentator-like "
+                        "--mask (its stomach label is then the mask), else from the stomach gas; refused when unsure")
     u.add_argument("--output-dir", "-o", required=True, metavar="DIR", help="folder for the output files")
     u.add_argument("--mask", metavar="FILE", help="stomach label volume on the CT's grid (replaces the air threshold)")
     u.add_argument("--mask-label", type=int, default=None, metavar="N",
@@ -325,7 +328,12 @@ def _cmd_unfold(args) -> int:
     from .pipeline import UnfoldParameters, unfold
 
     _check_unfold_outputs(args)
-    if args.points:
+    if args.auto_points:
+        if args.points or args.cardia or args.pylorus:
+            raise PointError("--auto-points finds the cardia and pylorus itself; leave out --cardia, --pylorus "
+                             "and --points (or leave out --auto-points)")
+        cardia = pylorus = None
+    elif args.points:
         cardia, pylorus = _points_from_file(args.points)
         if args.cardia:
             cardia = ras_to_lps(parse_point(args.cardia))
@@ -345,7 +353,12 @@ def _cmd_unfold(args) -> int:
         bar.span(0.0, 0.08)("reading the CT", 0.0)
         ct = read_volume(args.input, series_uid=args.series_uid)
         check_output_folder(args.output_dir, estimate_output_bytes(ct))
-        mask = read_label_volume(args.mask, ct, label_value=args.mask_label) if args.mask else None
+        found = None
+        if args.auto_points:
+            cardia, pylorus, found, stomach_value = _auto_points(args, ct, params)
+            mask = read_label_volume(args.mask, ct, label_value=stomach_value) if args.mask else None
+        else:
+            mask = read_label_volume(args.mask, ct, label_value=args.mask_label) if args.mask else None
         bar("reading the CT", 1.0)
         curve = None
         if args.incision_curve:
@@ -353,6 +366,8 @@ def _cmd_unfold(args) -> int:
         landmarks = read_markups_points(args.landmarks) if args.landmarks else None
         result = unfold(ct, cardia, pylorus, params, mask=mask, incision_curve_lps=curve, progress=bar.span(0.08, 0.95))
         bar.span(0.95, 1.0)("writing", 0.0)
+        if found is not None:
+            result.report["auto_points"] = found.to_dict()
         result.report["run"].update(_reproduce(args, getattr(args, "argv", [])))
         markers = _phantom_markers(args.points)
         if markers and _has_evaluation():
@@ -376,6 +391,17 @@ def _cmd_unfold(args) -> int:
     for w in r["warnings"]:
         _say(f"warning: {w}", sys.stderr)
     return 0
+
+
+def _auto_points(args, ct, params):
+    """--auto-points: (cardia, pylorus LPS mm, AutoPoints, stomach label value or None); PointError when unsure."""
+    from .io import read_volume
+    from .landmarks import auto_points_or_refuse, labels_on_grid
+
+    labels = labels_on_grid(read_volume(args.mask), ct) if args.mask else None
+    found = auto_points_or_refuse(ct, labels, threshold_hu=params.air_threshold_hu, max_snap_mm=params.max_snap_mm)
+    value = args.mask_label if args.mask_label is not None else found.labels.get("stomach")
+    return found.cardia_lps, found.pylorus_lps, found, value
 
 
 def _has_evaluation() -> bool:
@@ -486,7 +512,8 @@ def _cmd_phantom(args) -> int:
 
 
 #: The benchmark's parts (``bench --parts``).
-BENCH_PARTS = ("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling", "stomachs", "memory")
+BENCH_PARTS = ("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling", "stomachs", "memory",
+               "zeroclicks", "autopoints")
 
 
 def _cmd_bench(args) -> int:

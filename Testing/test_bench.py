@@ -121,3 +121,27 @@ def test_family_summary_counts_grades_peers_and_the_bound():
     assert s["lscm"]["under_fluid_seen"] == 2 and s["lscm"]["under_fluid_total"] == 4
     text = "\n".join(bench.family_markdown(rows))
     assert "held out: never tuned on" in text and "| isometric | 1/2 | 2/2 |" in text
+
+
+def test_zero_clicks_row_sits_beside_the_two_click_rows():
+    """Issue 17: the 'isometric, zero clicks' row (found points) is summarised apart from the two-click rows."""
+    def row(vol, grade, zero=False, within=True, confident=True):
+        q = {"grade": grade, "visible_fraction": 0.99, "broken_springs_fraction": 0.0, "inverted_fraction": 0.0,
+             "failure_parts": 0}
+        r = {"name": f"{vol}/isometric" + ("-zero-clicks" if zero else ""), "group": "stomachs-tune",
+             "method": "isometric", "ok": confident, "seconds": 2.0, "quality": q}
+        if zero:
+            r.update(zero_clicks=True, auto_points={"within_tolerance": within, "confident": confident,
+                                                    "cardia_error_mm": 4.0, "pylorus_error_mm": 3.0})
+        return r
+    rows = [row("a", "excellent"), row("b", "good"), row("a", "excellent", zero=True),
+            row("b", "excellent", zero=True, within=False), row("c", "bad", zero=True, within=False, confident=False)]
+    s = bench.family_summary(rows, "stomachs-tune")
+    assert s["isometric"]["volumes"] == 2 and s["isometric"]["excellent"] == 1  # two clicks untouched
+    z = s["isometric, zero clicks"]
+    assert (z["volumes"], z["failed"], z["points_within_10mm"], z["refused"], z["grade_as_two_clicks"]) == (3, 1, 1, 1, 1)
+    text = "\n".join(bench.family_markdown(rows))
+    assert "| isometric, zero clicks | 2/3 |" in text and "within 10 mm of the true cardia and pylorus on 1/3" in text
+    assert "two-click grade on 1/2 (volumes with a two-click row)" in text
+    cases = bench.zero_click_cases(quick=True)
+    assert len(cases) == 6 and all(c["source"]["auto_points"] for c in cases)
