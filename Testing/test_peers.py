@@ -188,3 +188,12 @@ def test_bad_input(phantoms):
         METHODS["lscm"](ct, c, p, lscm_boundary="square")
     with pytest.raises(InputError):
         METHODS["cylindrical"](Volume(np.zeros((20, 20, 20), np.int16), [2.0, 2.0, 2.0]), c, p)
+
+
+def test_the_narrow_lumen_warning_ignores_the_openings_and_names_grid_mm():
+    from StomachUnfoldLib.methods.massspring import narrow_lumen_warning
+
+    cell = np.array([2.0, 2.0, 2.5])
+    assert narrow_lumen_warning([0.5, 8.0, 9.0, 7.0, 0.4], cell) is None        # only the openings are narrow
+    msg = narrow_lumen_warning([6.0, 8.0, 1.2, 7.0, 6.0], cell)
+    assert msg and "1.2 mm radius" in msg and "--grid-mm" in msg and "--grid-size" not in msg

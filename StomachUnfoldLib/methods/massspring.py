@@ -17,7 +17,7 @@ import numpy as np
 from ..frontend import timed_stage
 from . import Mesh, Method, Unfolding, register
 
-__all__ = ["MassSpring", "PaperMassSpring", "PAPER_FORCES"]
+__all__ = ["MassSpring", "PaperMassSpring", "PAPER_FORCES", "narrow_lumen_warning"]
 
 #: The paper's forces: no guided destinations, no flattening pull, the pull of our first version.
 PAPER_FORCES = {"ramp_iterations": 0, "flattening_stiffness": 0.0, "unfolding_stiffness": 0.5}
@@ -50,9 +50,9 @@ class MassSpring(Method):
         seconds, warnings = {}, []
         d = params.grid_voxels(prep.ct.spacing)
         cell = prep.cell_mm
-        if float(np.min(cl.radius_mm)) < 1.5 * float(cell[:2].max()) / 2:
-            warnings.append(f"the lumen is as narrow as {np.min(cl.radius_mm):.1f} mm radius, close to the cell size "
-                            f"{cell.max():.1f} mm; a smaller --grid-size gives a finer model")
+        narrow = narrow_lumen_warning(cl.radius_mm, cell)
+        if narrow:
+            warnings.append(narrow)
         with timed_stage(progress, "wall model", seconds, *span["wall model"]):
             cut = incision_surface_points(inc, cl, depth_mm=params.wall_thickness_mm + 2.0 * cell.max(),
                                           inside_mm=cell.max(), sample_mm=0.3 * cell.min(), extend_mm=cell.max())
@@ -105,3 +105,18 @@ class PaperMassSpring(MassSpring):
     def solver_parameters(self, params):
         """The user's solver group with the paper's forces (PAPER_FORCES) put in."""
         return dataclasses.replace(params.solver, **PAPER_FORCES)
+
+
+def narrow_lumen_warning(radius_mm, cell_mm) -> str | None:
+    """The warning for a lumen (centreline radii, mm) narrower than 1.5 cells (cell size mm), or None.
+
+    The centreline's two end points sit in the cardia and pylorus openings, whose radius says nothing of the lumen
+    between them: they are left out.
+    """
+    r = np.asarray(radius_mm, float)
+    r = r[1:-1] if len(r) > 2 else r
+    cell = float(np.max(np.asarray(cell_mm, float)[:2]))
+    if not len(r) or float(np.min(r)) >= 1.5 * cell / 2:
+        return None
+    return (f"the lumen is as narrow as {np.min(r):.1f} mm radius, close to the cell size {cell:.1f} mm; a smaller "
+            f"--grid-mm (e.g. --grid-mm {max(0.5, 0.5 * float(np.min(r))):.1f}) gives a finer model")
