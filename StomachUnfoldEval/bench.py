@@ -49,6 +49,10 @@ def _wall(src: dict) -> float:
 #: Random stomachs: the seeds the defaults were tuned on, and the held-out seeds never tuned on.
 TUNE_SEEDS = tuple(range(0, 30))
 HELD_OUT_SEEDS = tuple(range(1000, 1030))
+#: A second held-out set, drawn on 2026-12-01 after the isometric method's distance terms and fold handling were
+#: settled (a failure seen on two volumes of HELD_OUT_SEEDS shaped the fold handling, so those seeds are no longer
+#: untouched for that change); never looked at before that run.
+FRESH_SEEDS = tuple(range(3000, 3030))
 #: The methods compared on every random stomach, on the same volumes in one run.
 FAMILY_METHODS = ("isometric", "massspring", "cylindrical", "lscm")
 
@@ -276,7 +280,8 @@ def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None
     """Random stomachs (tuned-on and held-out seeds) and hybrids in the real CTs, every FAMILY_METHODS on each."""
     cache = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "stomach-unfold", "phantoms")
     groups = [("stomachs-tune", TUNE_SEEDS[:3] if quick else TUNE_SEEDS),
-              ("stomachs-held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS)]
+              ("stomachs-held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS),
+              ("stomachs-fresh", () if quick else FRESH_SEEDS)]
     cases = []
     for group, seeds in groups:
         for seed in seeds:
@@ -750,6 +755,8 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
 
 FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults were tuned on these)"),
                  ("stomachs-held-out", "Random stomachs, seeds 1000-1029 (held out: never tuned on)"),
+                 ("stomachs-fresh", "Random stomachs, seeds 3000-3029 (a second held-out set, first drawn after the "
+                                    "2026-12-01 changes)"),
                  ("stomachs-hybrid", "Drawn stomachs inserted into the real CTs (held out)"))
 
 

@@ -167,12 +167,19 @@ def test_cancel_at_every_stage(phantom, stage):
     assert np.array_equal(ct.array, before)
 
 
+def _default_sigint():
+    """In the child: Ctrl-C at its default, as on a terminal (a test run started in the background ignores it, and
+    the command rightly keeps an ignored SIGINT ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_on_the_command_line_leaves_no_output(tmp_path):
     path, _ = write_phantom(str(tmp_path / "ph.nrrd"), shape="j", size="small")
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "StomachUnfoldLib.cli", "unfold", path, "--points",
                              str(tmp_path / "ph.mrk.json"), "-o", str(out), "--grid-mm", "3"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sigint)
     deadline = time.time() + 60
     # wait until the run is under way (it has created nothing yet), then interrupt it
     time.sleep(3.0)

@@ -30,7 +30,9 @@ def _command(*args):
 
 
 def _start(*args, stdout=subprocess.PIPE):
-    proc = subprocess.Popen(_command(*args), stdout=stdout, stderr=subprocess.PIPE, text=True)
+    # Ctrl-C at its default in the child, as on a terminal (a test run started in the background ignores it)
+    proc = subprocess.Popen(_command(*args), stdout=stdout, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert proc.stderr.readline() == "ready\n"
     return proc
 
