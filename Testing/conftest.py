@@ -252,3 +252,27 @@ def two_blocks(ct, up_mm):
     hexes = np.concatenate([ha, hb + len(ra)])
     deformed = np.concatenate([ra, ra + [0.0, 0.0, up_mm]])
     return rest, hexes, deformed, len(ra)
+
+
+def write_dicom_series(folder, vol, series_uid="1.2.826.0.1.3680043.8.498.7.1",
+                       study_uid="1.2.826.0.1.3680043.8.498.7", skip=()):
+    """Write ``vol`` (int16 HU, identity direction) as a CT DICOM series, one file per slice, leaving out ``skip``."""
+    import SimpleITK as sitk
+
+    os.makedirs(folder, exist_ok=True)
+    img = vol.to_sitk()
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k in range(img.GetDepth()):
+        if k in skip:
+            continue
+        sl = img[:, :, k]
+        pos = img.TransformIndexToPhysicalPoint((0, 0, k))
+        for tag, value in [("0008|0060", "CT"), ("0020|000d", study_uid), ("0020|000e", series_uid),
+                           ("0020|0032", "\\".join(f"{c:.4f}" for c in pos)), ("0020|0037", "1\\0\\0\\0\\1\\0"),
+                           ("0020|0013", str(k + 1)), ("0028|0030", f"{vol.spacing[1]:.4f}\\{vol.spacing[0]:.4f}"),
+                           ("0018|0050", f"{vol.spacing[2]:.4f}"), ("0008|0018", f"{series_uid}.{k + 1}")]:
+            sl.SetMetaData(tag, value)
+        writer.SetFileName(os.path.join(folder, f"{series_uid[-3:]}_{k:03d}.dcm"))
+        writer.Execute(sl)
+

@@ -18,6 +18,7 @@ from StomachUnfoldLib.errors import AnatomyError, InputError, PointError
 from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
 from StomachUnfoldEval.phantom import make_phantom
+from conftest import write_dicom_series
 
 GOOD = {"@schema": suio.MARKUPS_SCHEMA, "markups": [{
     "type": "Fiducial", "coordinateSystem": "LPS", "controlPoints": [
@@ -172,29 +173,6 @@ def test_a_truncated_nifti_is_refused(tmp_path):
     with pytest.raises(InputError, match="truncated"):
         suio.read_volume(raw)
     assert np.array_equal(suio.read_volume(whole).array, v.array)
-
-
-def write_dicom_series(folder, vol, skip=()):
-    """Write ``vol`` (int16 HU, identity direction) as a CT DICOM series, one file per slice, leaving out ``skip``."""
-    import SimpleITK as sitk
-
-    os.makedirs(folder, exist_ok=True)
-    img = vol.to_sitk()
-    writer = sitk.ImageFileWriter()
-    writer.KeepOriginalImageUIDOn()
-    uid = "1.2.826.0.1.3680043.8.498.7"
-    for k in range(img.GetDepth()):
-        if k in skip:
-            continue
-        sl = img[:, :, k]
-        pos = img.TransformIndexToPhysicalPoint((0, 0, k))
-        for tag, value in [("0008|0060", "CT"), ("0020|000d", uid), ("0020|000e", uid + ".1"),
-                           ("0020|0032", "\\".join(f"{c:.4f}" for c in pos)), ("0020|0037", "1\\0\\0\\0\\1\\0"),
-                           ("0020|0013", str(k + 1)), ("0028|0030", f"{vol.spacing[1]:.4f}\\{vol.spacing[0]:.4f}"),
-                           ("0018|0050", f"{vol.spacing[2]:.4f}"), ("0008|0018", f"{uid}.1.{k + 1}")]:
-            sl.SetMetaData(tag, value)
-        writer.SetFileName(os.path.join(folder, f"s{k:03d}.dcm"))
-        writer.Execute(sl)
 
 
 def test_a_dicom_series_with_a_missing_slice_is_refused_naming_the_gap(tmp_path):

@@ -8,7 +8,7 @@ from StomachUnfoldLib import io as suio
 from StomachUnfoldLib.errors import InputError, PointError
 from StomachUnfoldLib.geometry import Volume
 
-from conftest import SHARED_DIR
+from conftest import SHARED_DIR, write_dicom_series
 
 DATA = os.path.join(SHARED_DIR, "data")
 need_data = pytest.mark.skipif(not os.path.isdir(DATA), reason=f"the real CTs are not in {DATA} (set STOMACHUNFOLD_SHARED)")
@@ -87,34 +87,14 @@ def test_stomach_label_resampled_onto_the_ct_in_physical_space():
         suio.read_label_volume(os.path.join(DATA, "02_totalseg_example_ct_dicom_slab_seg117_stomach6.nii.gz"), ct, 250)
 
 
-def _write_dicom_series(folder, vol, series_uid, study_uid):
-    """Write vol (int16 HU, identity direction) as a CT DICOM series of one file per slice."""
-    import SimpleITK as sitk
-
-    os.makedirs(folder, exist_ok=True)
-    img = vol.to_sitk()
-    writer = sitk.ImageFileWriter()
-    writer.KeepOriginalImageUIDOn()
-    for k in range(img.GetDepth()):
-        sl = img[:, :, k]
-        pos = img.TransformIndexToPhysicalPoint((0, 0, k))
-        for tag, value in [("0008|0060", "CT"), ("0020|000d", study_uid), ("0020|000e", series_uid),
-                           ("0020|0032", "\\".join(f"{v:.4f}" for v in pos)), ("0020|0037", "1\\0\\0\\0\\1\\0"),
-                           ("0020|0013", str(k + 1)), ("0028|0030", f"{vol.spacing[1]:.4f}\\{vol.spacing[0]:.4f}"),
-                           ("0018|0050", f"{vol.spacing[2]:.4f}"), ("0008|0018", f"{series_uid}.{k + 1}")]:
-            sl.SetMetaData(tag, value)
-        writer.SetFileName(os.path.join(folder, f"{series_uid[-3:]}_{k:03d}.dcm"))
-        writer.Execute(sl)
-
-
 def test_dicom_folder_with_several_series_names_them_and_reads_the_chosen_one(tmp_path):
     rng = np.random.default_rng(1)
     a = Volume(rng.integers(-1000, 1000, size=(5, 6, 7)).astype(np.int16), [0.8, 0.8, 2.0], [0.0, 0.0, 0.0])
     b = Volume(rng.integers(-1000, 1000, size=(9, 6, 7)).astype(np.int16), [0.8, 0.8, 1.0], [0.0, 0.0, 0.0])
     study = "1.2.826.0.1.3680043.8.498.1"
     ua, ub = study + ".101", study + ".202"
-    _write_dicom_series(str(tmp_path), a, ua, study)
-    _write_dicom_series(str(tmp_path), b, ub, study)
+    write_dicom_series(str(tmp_path), a, ua, study)
+    write_dicom_series(str(tmp_path), b, ub, study)
     with pytest.raises(InputError, match=r"2 DICOM series.*5 slices.*9 slices.*--series-uid|2 DICOM series.*9 slices.*5 slices.*--series-uid"):
         suio.read_volume(str(tmp_path))
     got = suio.read_volume(str(tmp_path), series_uid=ub)
