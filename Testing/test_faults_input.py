@@ -181,7 +181,7 @@ def test_a_dicom_series_with_a_missing_slice_is_refused_naming_the_gap(tmp_path)
     write_dicom_series(str(tmp_path / "ok"), v)
     assert suio.read_volume(str(tmp_path / "ok")).array.shape == v.array.shape
     write_dicom_series(str(tmp_path / "gap"), v, skip=(5,))
-    with pytest.raises(InputError, match=r"gap: 2.50 mm between slices at 5.00 and 7.50 mm \(s004.dcm and s006.dcm\)"
+    with pytest.raises(InputError, match=r"gap: 2.50 mm between slices at 5.00 and 7.50 mm \(7.1_004.dcm and 7.1_006.dcm\)"
                                          r".*1.25 mm apart.*export the complete series"):
         suio.read_volume(str(tmp_path / "gap"))
 
