@@ -35,7 +35,8 @@ MAX_MESH_VERTICES = 20000
 #: (below it the fold is peeled off: with the distance terms an early, crossing-free iterate is far from converged;
 #: tuning seed 29: ratio to the flat-layout bound 5.3 with the early iterate, 1.56 converged and peeled)
 OVERLAP_TOLERANCE = 0.02
-#: a hole in the flat map larger than this (mm^2) is a failure part for the judge (quality: regions > 25 mm^2)
+#: a hole or a doubly covered region of the flat map larger than this (mm^2) is a failure part for the judge
+#: (quality: regions > 25 mm^2)
 HOLE_MM2 = 25.0
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
@@ -760,9 +761,9 @@ def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarr
     """Untangle a flat map (uv mm) and peel its flips and folds; returns (uv, kept triangles).
 
     ``candidates`` = (the converged map, the crossing-free early iterate or None, a callable giving the plain ARAP
-    map without distance terms). The first is taken unless peeling its folds leaves a hole the judge would count as a
-    failure part (over HOLE_MM2 mm^2 inside the outline); then the next ones are tried, and the one with the smallest
-    hole is kept.
+    map without distance terms). The first is taken unless, after peeling, it keeps a defect the judge would count as
+    a failure part (a hole inside the outline or a fold still covered twice, over HOLE_MM2 mm^2); then the next ones
+    are tried, and the one with the smallest defect is kept.
     """
     best = None
     for n, cand in enumerate(candidates):
@@ -773,7 +774,7 @@ def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarr
         u, _, flipped = untangle(cand, cut.f)
         f_keep, n_peel = peel_boundary(cut.v, cut.f, u)
         f_keep, n_over = peel_overlaps(f_keep, u)
-        hole = _largest_hole_mm2(u, f_keep, s)
+        hole = _largest_defect_mm2(u, f_keep, s)
         if best is None or hole < best[0]:
             best = (hole, is_fb, u, f_keep, flipped, n_peel, n_over)
         if hole <= HOLE_MM2:
@@ -781,26 +782,29 @@ def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarr
     hole, is_fb, u, f_keep, flipped, n_peel, n_over = best
     info.update(used_crossing_free_iterate=is_fb == "crossing-free iterate", flat_map_used=is_fb,
                 flipped_after_untangle=flipped, peeled_triangles=n_peel,
-                peeled_overlap_triangles=n_over, flat_hole_mm2=hole)
+                peeled_overlap_triangles=n_over, flat_defect_mm2=hole)
     return u, f_keep
 
 
-def _largest_hole_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
-    """Area (mm^2) of the largest region inside a flat map's (uv mm) outline that no triangle covers, at pixel s mm."""
+def _largest_defect_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
+    """Area (mm^2) of the largest region of a flat map (uv mm, pixel s mm) that no triangle covers inside its outline
+    (a hole) or that two triangles cover (a fold left after peeling): what the judge counts as a failure part."""
     from ..surface import rasterise
 
     q = uv - uv.min(0) + s
     ni, nj = int(np.ceil(q[:, 0].max() / s)) + 2, int(np.ceil(q[:, 1].max() / s)) + 2
     if ni * nj > 25_000_000 or not len(f):
         return 0.0
-    tri, _, _ = rasterise(q, f, (nj, ni), s, lambda fraction: None)
+    tri, _, hits = rasterise(q, f, (nj, ni), s, lambda fraction: None)
     covered = tri >= 0
     covered |= ndimage.binary_closing(covered, iterations=1) & ndimage.binary_erosion(
         ndimage.binary_fill_holes(covered), iterations=1)          # one-pixel pinholes the raster's rim fills
-    holes = ndimage.binary_fill_holes(covered) & ~covered
-    if not holes.any():
+    # a pixel centre on an edge shared inside one layer is strictly inside none of its triangles: close those lines
+    folds = ndimage.binary_closing(hits > 1, structure=np.ones((3, 3), bool), iterations=1) & covered
+    defect = (ndimage.binary_fill_holes(covered) & ~covered) | folds
+    if not defect.any():
         return 0.0
-    lab, n = ndimage.label(holes)
+    lab, n = ndimage.label(defect)
     return float(np.max(np.bincount(lab.ravel())[1:]) * s * s)
 
 
