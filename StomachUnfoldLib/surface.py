@@ -16,6 +16,7 @@ from .progress import Progress
 
 INSIDE_MM = 2.0         # how far into the lumen (mm) each depth profile starts
 CLEARANCE_MM = 2.0      # profile length beyond the wall thickness (mm)
+CRACK_PX = 1.0          # pinholes and cracks inside the flat map's outline up to two pixels wide are closed (pixels)
 SURFACE_SIGMA_VOX = 1.0  # blur of the inner-wall field (voxels)
 
 
@@ -557,14 +558,23 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None):
 def _rim(uv, f, tri, bary, s):
     """Extend the raster by the pixels just outside the flat map's outline: a pixel whose centre lies outside every
     triangle but within half a pixel of its neighbour's triangle takes that triangle with clamped barycentrics, so
-    the mucosa reaches the view's edge instead of stopping half a pixel short of it."""
+    the mucosa reaches the view's edge instead of stopping half a pixel short of it. Inside the outline, pinholes and
+    cracks at most two pixels wide (where a fold was peeled, the two sides' edges do not quite meet) are closed the
+    same way from up to CRACK_PX pixels; wider holes stay holes."""
     covered = tri >= 0
     if not covered.any():
         return tri, bary
     rim = ndimage.binary_dilation(covered) & ~covered
     if not rim.any():
         return tri, bary
-    _, (nj_idx, ni_idx) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    gap, (nj_idx, ni_idx) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    enclosed = ndimage.binary_fill_holes(covered) & ~covered
+    thin = np.zeros_like(covered)
+    if enclosed.any():
+        lab, n = ndimage.label(enclosed)
+        widest = ndimage.maximum(gap, lab, index=np.arange(1, n + 1))
+        thin = np.isin(lab, 1 + np.flatnonzero(np.asarray(widest) <= CRACK_PX))
+    rim |= thin
     jj, ii = np.nonzero(rim)
     t = tri[nj_idx[jj, ii], ni_idx[jj, ii]]
     a, b, c = uv[f[t, 0]], uv[f[t, 1]], uv[f[t, 2]]
@@ -577,7 +587,8 @@ def _rim(uv, f, tri, bary, s):
     # within half a pixel of the triangle: the clamped point moves at most that far
     q = np.clip(lam, 0.0, 1.0)
     q /= np.maximum(q.sum(1, keepdims=True), 1e-12)
-    near = np.linalg.norm(np.einsum("nc,ncx->nx", q, uv[f[t]]) - p, axis=1) <= 0.5 * s
+    reach = np.where(thin[jj, ii], (CRACK_PX + 0.5) * s, 0.5 * s)
+    near = np.linalg.norm(np.einsum("nc,ncx->nx", q, uv[f[t]]) - p, axis=1) <= reach
     tri, bary = tri.copy(), bary.copy()
     tri[jj[near], ii[near]] = t[near]
     bary[jj[near], ii[near]] = q[near]
