@@ -216,18 +216,18 @@ def test_distance_terms_keep_long_lengths_on_a_curved_cap():
 
 
 def test_largest_defect_finds_a_hole_and_a_fold_left_after_peeling():
-    from StomachUnfoldLib.methods.isometric import _largest_defect_mm2
+    from StomachUnfoldLib.methods.isometric import largest_defect_mm2
 
     n = 21
     U, V = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
     uv = np.stack([U.ravel(), V.ravel()], 1) * 1.0           # a 20 x 20 mm sheet of 1 mm squares
     f = _grid(n, n)
-    assert _largest_defect_mm2(uv, f, 0.45) == 0.0
+    assert largest_defect_mm2(uv, f, 0.45) == 0.0
     c = f[:, :].reshape(n - 1, n - 1, 2, 3)                  # drop a 6 x 6 mm block inside: a 36 mm^2 hole
     keep = np.ones((n - 1, n - 1), bool)
     keep[7:13, 7:13] = False
-    hole = _largest_defect_mm2(uv, c[keep].reshape(-1, 3), 0.45)
+    hole = largest_defect_mm2(uv, c[keep].reshape(-1, 3), 0.45)
     assert 25.0 < hole < 42.0               # less the half-pixel rim the view's raster fills along every edge
     uv2 = np.vstack([uv, uv + 0.3])                           # a 6 x 6 mm copy laid over the sheet: a fold
     fold = np.vstack([f, (c[7:13, 7:13].reshape(-1, 3) + len(uv))])
-    assert 25.0 < _largest_defect_mm2(uv2, fold, 0.45) < 42.0
+    assert 25.0 < largest_defect_mm2(uv2, fold, 0.45) < 42.0

@@ -27,8 +27,9 @@ from ..surface import (compact, cut_surface, inner_surface, largest_component, o
                        sample_flat_map, signed_area_2d, smooth_tangents, unit, vertex_normals)
 from . import Method, Unfolding, register
 
-__all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "triangle_frames", "cot_laplacian", "stretch_stats", "cut_along_path",
-           "open_surface", "taubin_smooth", "IsoSurface", "MAX_MESH_VERTICES"]
+__all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "largest_defect_mm2",
+           "triangle_frames", "cot_laplacian", "stretch_stats", "cut_along_path", "open_surface", "taubin_smooth",
+           "IsoSurface", "MAX_MESH_VERTICES"]
 
 MAX_MESH_VERTICES = 20000
 #: fraction of doubly covered pixels of the final ARAP map above which the latest crossing-free iterate is preferred
@@ -775,7 +776,7 @@ def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarr
         u, _, flipped = untangle(cand, cut.f)
         f_keep, n_peel = peel_boundary(cut.v, cut.f, u)
         f_keep, n_over = peel_overlaps(f_keep, u)
-        hole = _largest_defect_mm2(u, f_keep, s)
+        hole = largest_defect_mm2(u, f_keep, s)
         if best is None or hole < best[0]:
             best = (hole, is_fb, u, f_keep, flipped, n_peel, n_over)
         if hole <= HOLE_MM2:
@@ -787,7 +788,7 @@ def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarr
     return u, f_keep
 
 
-def _largest_defect_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
+def largest_defect_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
     """Area (mm^2) of the largest region of a flat map (uv mm, pixel s mm) that no triangle covers inside its outline
     (a hole) or that two triangles cover (a fold left after peeling): what the judge counts as a failure part."""
     from ..surface import rasterise
