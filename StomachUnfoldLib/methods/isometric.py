@@ -32,10 +32,10 @@ __all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "l
            "IsoSurface", "MAX_MESH_VERTICES"]
 
 MAX_MESH_VERTICES = 20000
-#: fraction of doubly covered pixels of the final ARAP map above which the latest crossing-free iterate is preferred
-#: (below it the fold is peeled off; above it peeling would hide more mucosa than a less converged, fold-free map
-#: distorts: visibility first. 0.02 was tried: tuning seed 29 kept its lengths, 1.56x the bound instead of 5.3x,
-#: but the demo phantom then hid a marker under a peeled fold)
+#: fraction of doubly covered pixels of the final ARAP map above which the latest crossing-free iterate is offered
+#: as a fallback to ``_settle`` (which still keeps the converged map when peeling its fold leaves no defect the judge
+#: counts: with the distance terms an early iterate is far from converged, e.g. tuning seed 29 at 5.3x the
+#: flat-layout bound against 1.56x converged and peeled)
 OVERLAP_TOLERANCE = 0.005
 #: a hole or a doubly covered region of the flat map larger than this (mm^2) is a failure part for the judge
 #: (quality: regions > 25 mm^2)
