@@ -186,12 +186,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
                               "broken") from e
     col_pin = L[:, pin].toarray().ravel()[keep]
     overlap_stop = 0
-    if injective:
-        ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        ue, cnt = _unique_rows(ee, return_counts=True)
-        bedges = ue[cnt == 1]
-    else:
-        bedges = None
+    bedges = _boundary_edges(f) if injective else None
     uv = np.array(uv0, float)
     # the triangles' rest frames are counter-clockwise: a mirrored start map would have to turn inside out
     if np.sum(signed_area_2d(uv, f)[good] > 0) < 0.5 * good.sum():
@@ -271,8 +266,7 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
     from scipy.sparse.csgraph import dijkstra
 
     nv = len(v)
-    e = _edges(f)
-    A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv)).tocsr()
+    A = _adjacency(f, nv)
     A2 = (A @ A + A).tocoo()
     keep = A2.row < A2.col
     r, c = A2.row[keep], A2.col[keep]
@@ -286,9 +280,7 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
         lm[i] = int(np.argmax(d))
         d = np.minimum(d, np.linalg.norm(v - v[lm[i]], axis=1))
     D = dijkstra(G, directed=False, indices=lm, limit=pair_max_mm * 1.05)[:, lm]
-    ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    ue, cnt = _unique_rows(ee, return_counts=True)
-    rim = np.unique(ue[cnt == 1])
+    rim = np.unique(_boundary_edges(f))
     d_rim = dijkstra(G, directed=False, indices=rim, min_only=True)[lm] if len(rim) else np.full(k, np.inf)
     a, b = np.triu_indices(k, 1)
     g = D[a, b]
@@ -314,17 +306,12 @@ def untangle(uv: np.ndarray, f: np.ndarray, rounds: int = 20) -> tuple[np.ndarra
 
     Returns (uv, flipped before, flipped after); boundary vertices stay.
     """
-    from scipy.sparse import coo_matrix
-
     uv = uv.copy()
-    e = _edges(f)
     nv = len(uv)
-    A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv)).tocsr()
+    A = _adjacency(f, nv)
     deg = np.maximum(np.asarray(A.sum(1)).ravel(), 1)
-    ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    ue, cnt = _unique_rows(ee, return_counts=True)
     on_b = np.zeros(nv, bool)
-    on_b[ue[cnt == 1].ravel()] = True
+    on_b[_boundary_edges(f).ravel()] = True
 
     def flipped():
         """Bool (F,): triangles whose orientation differs from the majority's."""
@@ -427,8 +414,7 @@ def stretch_stats(v: np.ndarray, f: np.ndarray, uv: np.ndarray) -> dict:
     B = np.stack([y[ok, 1] - y[ok, 0], y[ok, 2] - y[ok, 0]], -1)
     J = B @ np.linalg.inv(A)
     s = np.linalg.svd(J, compute_uv=False)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    e = _unique_rows(e)
+    e = _edges(f)
     l0 = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
     l1 = np.linalg.norm(uv[e[:, 0]] - uv[e[:, 1]], axis=1)
     r = l1 / np.maximum(l0, 1e-12)
@@ -503,14 +489,29 @@ def _edges(f: np.ndarray) -> np.ndarray:
     return _unique_rows(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1))
 
 
+def _boundary_edges(f: np.ndarray) -> np.ndarray:
+    """Edges (B,2) of triangles f that only one triangle has: the mesh's boundary."""
+    ue, cnt = _unique_rows(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1),
+                           return_counts=True)
+    return ue[cnt == 1]
+
+
+def _adjacency(f: np.ndarray, nv: int):
+    """Sparse (V,V) 0/1 vertex adjacency (csr) of triangles f over nv vertices."""
+    from scipy.sparse import coo_matrix
+
+    e = _edges(f)
+    return coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                      shape=(nv, nv)).tocsr()
+
+
 def taubin_smooth(v: np.ndarray, f: np.ndarray, iterations: int = 10, lam: float = 0.5, mu: float = -0.53,
                   fixed: np.ndarray | None = None) -> np.ndarray:
     """Taubin lambda/mu smoothing (V,3 mm) with the uniform Laplacian: removes voxel staircases without shrinking."""
-    from scipy.sparse import coo_matrix, diags
+    from scipy.sparse import diags
 
-    e = _edges(f)
     nv = len(v)
-    A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(nv, nv)).tocsr()
+    A = _adjacency(f, nv)
     deg = np.asarray(A.sum(1)).ravel()
     W = diags(1.0 / np.maximum(deg, 1)) @ A
     x = v.copy()
@@ -547,9 +548,7 @@ def boundary_loops(f: np.ndarray) -> list:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    ue, cnt = _unique_rows(e, return_counts=True)
-    b = ue[cnt == 1]
+    b = _boundary_edges(f)
     if not len(b):
         return []
     ids, inv = np.unique(b, return_inverse=True)
@@ -819,15 +818,13 @@ def _with_faces(cut, f: np.ndarray, uv: np.ndarray):
     remap = np.full(nv, -1, np.int64)
     remap[used] = np.arange(len(used))
     f = remap[f]
-    ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    ue, cnt = _unique_rows(ee, return_counts=True)
     per_vertex = {fl.name: getattr(cut, fl.name)[used] for fl in fields(cut)
                   if fl.name not in ("f", "boundary_edges", "Pd") and isinstance(getattr(cut, fl.name), np.ndarray)
                   and len(getattr(cut, fl.name)) == nv}
     if "partner" in per_vertex:
         p = per_vertex["partner"]
         per_vertex["partner"] = np.where(p >= 0, remap[np.maximum(p, 0)], -1)
-    return replace(cut, f=f, boundary_edges=ue[cnt == 1], **per_vertex), uv[used]
+    return replace(cut, f=f, boundary_edges=_boundary_edges(f), **per_vertex), uv[used]
 
 
 def _fluid_fraction(prep) -> float:
