@@ -61,9 +61,13 @@ def _write_source(kw: dict, path: str) -> dict:
     return {"cardia_lps": list(truth["cardia_lps"]), "pylorus_lps": list(truth["pylorus_lps"])}
 
 
-def memory_run(path: str, truth: dict, method: str | None = None) -> dict:
-    """Read, unfold and write the CT file ``path`` here; peak resident MB overall and at each stage (fresh process)."""
+def memory_run(path: str, truth: dict, method: str | None = None, stream: bool = True) -> dict:
+    """Read, unfold and write the CT file ``path`` here; peak resident MB overall and at each stage (fresh process).
+
+    ``stream``: leave the CT on file and read it box by box, as the command line does (False: read it whole).
+    """
     import StomachUnfoldLib.pipeline  # noqa: F401  (the libraries a run imports, before the baseline is taken)
+    from StomachUnfoldLib.frontend import return_freed_memory
     from StomachUnfoldLib.io import read_volume
     from StomachUnfoldLib.params import UnfoldParameters
     from StomachUnfoldLib.pipeline import unfold
@@ -74,7 +78,8 @@ def memory_run(path: str, truth: dict, method: str | None = None) -> dict:
         if stage != seen["stage"]:
             stages.append([stage, _rss_mb()])  # the peak so far when this stage starts
             seen["stage"] = stage
-    vol = read_volume(path)
+    return_freed_memory()  # as the command line and the batch workers do
+    vol = read_volume(path, stream=stream)
     after_read = _rss_mb()
     params = UnfoldParameters() if method is None else UnfoldParameters(method=method)
     res = unfold(vol, truth["cardia_lps"], truth["pylorus_lps"], params, progress=progress)

@@ -287,6 +287,7 @@ def _row_from_report(row: dict, rep, seconds: float) -> dict:
 
 def run_case(job: dict, record: dict) -> dict:
     """Unfold one case (read, unfold, write its outputs and record) and return its summary row; never raises."""
+    from .frontend import return_freed_memory
     from .io import atomic_write_text, cardia_pylorus_from_markups, read_label_volume, read_volume
     from .params import UnfoldParameters
     from .pipeline import unfold
@@ -301,7 +302,8 @@ def run_case(job: dict, record: dict) -> dict:
             os.remove(os.path.join(job["output"], RECORD_NAME))  # a run cut short leaves no matching record
         except FileNotFoundError:
             pass
-        ct = read_volume(record["inputs"]["input"]["path"])
+        return_freed_memory()
+        ct = read_volume(record["inputs"]["input"]["path"], stream=True)  # read box by box: memory follows the crop
         cardia, pylorus = cardia_pylorus_from_markups(record["inputs"]["points"]["path"])
         mask = None
         if "mask" in record["inputs"]:

@@ -324,10 +324,12 @@ def _cmd_unfold(args) -> int:
 
     from .geometry import ras_to_lps
     from .io import check_output_folder, estimate_output_bytes, read_label_volume, read_markups_points, read_volume
+    from .frontend import return_freed_memory
     from .params import parameter_specs
     from .pipeline import UnfoldParameters, unfold
 
     _check_unfold_outputs(args)
+    return_freed_memory()
     if args.auto_points:
         if args.points or args.cardia or args.pylorus:
             raise PointError("--auto-points finds the cardia and pylorus itself; leave out --cardia, --pylorus "
@@ -351,7 +353,8 @@ def _cmd_unfold(args) -> int:
     finished = False
     try:
         bar.span(0.0, 0.08)("reading the CT", 0.0)
-        ct = read_volume(args.input, series_uid=args.series_uid)
+        # left on file and read box by box (memory grows with the stomach, not the CT); --auto-points looks at it whole
+        ct = read_volume(args.input, series_uid=args.series_uid, stream=not args.auto_points)
         check_output_folder(args.output_dir, estimate_output_bytes(ct))
         found = None
         if args.auto_points:

@@ -19,7 +19,8 @@ from .progress import Progress
 
 __all__ = ["Prepared", "prepare", "check_volume", "check_points", "outside_message", "crop_margin_mm", "timed_stage",
            "available_memory_bytes", "estimate_memory_bytes", "check_incision_curve", "check_mask_region",
-           "estimate_model_bytes", "check_model_memory", "MODEL_BYTES_PER_VERTEX", "SWAP_LIMIT_MM", "FRONT_STAGES"]
+           "estimate_model_bytes", "check_model_memory", "MODEL_BYTES_PER_VERTEX", "SWAP_LIMIT_MM", "FRONT_STAGES",
+           "return_freed_memory", "LEAN_MALLOC_BYTES"]
 
 #: The cardia lies superior to the pylorus on supine CT; a "cardia" this far (mm) below the "pylorus" is a swap.
 SWAP_LIMIT_MM = 20.0
@@ -117,9 +118,34 @@ def available_memory_bytes() -> int:
     return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
 
 
+#: Blocks at least this large (bytes) are mapped and unmapped on their own under :func:`return_freed_memory`.
+LEAN_MALLOC_BYTES = 128 * 1024
+
+
+def return_freed_memory() -> bool:
+    """On glibc, give freed blocks of LEAN_MALLOC_BYTES or more back to the system at once; True if set.
+
+    glibc raises its mmap threshold after large frees (up to 32 MB), so later arrays come from the heap and a
+    freed crop's pages stay resident; fixing the mmap and trim thresholds (``mallopt``) keeps the process's
+    resident memory close to its live arrays (about 90 MB less at the peak of a full-size run). For processes
+    the library owns (the command line, batch workers); Slicer's own process is left alone.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+    return bool(mallopt(M_MMAP_THRESHOLD, LEAN_MALLOC_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD, LEAN_MALLOC_BYTES))
+
+
 def estimate_memory_bytes(ct: Volume) -> int:
-    """Rough peak extra memory (bytes) of a run on this CT: masks and labels over the whole grid, before cropping."""
-    return int(ct.array.size * 6)
+    """Rough peak extra memory (bytes) of a run on this CT: masks and labels over the whole grid, before cropping
+    (a CT left on file, read box by box, needs only its packed air mask: an eighth of a byte per voxel)."""
+    return int(ct.array.size * (0.125 if hasattr(ct.array, "read_box") else 6))
 
 
 #: Rough working memory (bytes) per vertex of the hexahedral wall model: springs, the sparse system and its factor.
@@ -167,13 +193,10 @@ def check_volume(ct: Volume) -> list[str]:
     if need > 0.8 * avail:
         raise InputError(f"this volume ({ct.size} voxels) needs about {need / 2**30:.1f} GiB of working memory and "
                          f"only {avail / 2**30:.1f} GiB is free; crop the CT to the upper abdomen first")
-    if a.dtype.kind == "f":
-        finite = np.isfinite(a)
-        if not finite.all():
-            bad = int(finite.size - np.count_nonzero(finite))
-            raise InputError(f"{bad} voxels ({100.0 * bad / finite.size:.2g} %) are NaN or infinite; give a CT with "
-                             "finite HU values")
-    lo, hi = float(a.min()), float(a.max())
+    lo, hi, bad = _value_range(a)
+    if bad:
+        raise InputError(f"{bad} voxels ({100.0 * bad / a.size:.2g} %) are NaN or infinite; give a CT with "
+                         "finite HU values")
     if hi - lo < 1e-6:
         raise InputError(f"the volume is constant ({lo:g}); give a CT volume")
     if lo > -300.0 or hi - lo < 500.0:
@@ -184,6 +207,19 @@ def check_volume(ct: Volume) -> list[str]:
         warnings.append(f"the voxels are {ratio:.1f} times longer along one axis ({np.round(ct.spacing, 2).tolist()} "
                         "mm); the wall model follows the coarse axis and the view will be coarse along it")
     return warnings
+
+
+def _value_range(a) -> tuple[float, float, int]:
+    """(lowest, highest finite value, count of NaN or infinite values) of an ndarray or a FileArray (one scan)."""
+    if hasattr(a, "value_range"):
+        return a.value_range()
+    bad = 0
+    if a.dtype.kind == "f":
+        finite = np.isfinite(a)
+        bad = int(finite.size - np.count_nonzero(finite))
+        if bad:
+            return float(np.min(a[finite], initial=np.inf)), float(np.max(a[finite], initial=-np.inf)), bad
+    return float(a.min()), float(a.max()), 0
 
 
 def outside_message(ct: Volume, name: str, p_lps) -> str:
@@ -324,6 +360,8 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     params.validate()
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     seconds: dict[str, float] = {}
+    if hasattr(ct.array, "scan") and mask is None:  # a CT on file: one pass for the value range and the air
+        ct.array.scan(params.air_threshold_hu)
     warnings = check_volume(ct)
     cardia, pylorus, w = check_points(ct, cardia_lps, pylorus_lps, params.swap_check)
     warnings += w
@@ -336,6 +374,8 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     crop = ct.crop(lo, hi)
     lumen_c = np.ascontiguousarray(lumen[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]])
     del lumen
+    if hasattr(ct.array, "release"):
+        ct.array.release()
     with timed_stage(prog, "wall region", seconds, *FRONT_STAGES[1][1:]):
         wall = wall_region(lumen_c, crop.spacing, params.wall_thickness_mm)
     if incision_curve_lps is not None:

@@ -49,6 +49,9 @@ class _ImageBuffer:
 class Volume:
     """A 3D image with its geometry: ``array[k, j, i]``, spacing (mm, i/j/k order), LPS origin (mm), direction.
 
+    ``array`` is an ndarray, or a ``volume_file.FileArray`` (a CT left on file, read box by box: ``crop``
+    returns an ndarray-backed Volume).
+
     ``direction`` is a 3x3 matrix whose columns are the LPS unit vectors of the i, j and k axes
     (ITK's convention). The LPS position of continuous index ``(i, j, k)`` is
     ``origin + direction @ (spacing * (i, j, k))``.
@@ -60,7 +63,8 @@ class Volume:
     direction: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def __post_init__(self):
-        self.array = np.asarray(self.array)
+        if not hasattr(self.array, "read_box"):  # a volume_file.FileArray stays on file, read box by box
+            self.array = np.asarray(self.array)
         if self.array.ndim != 3:
             raise ValueError(f"a Volume needs a 3D array, got shape {self.array.shape}")
         self.spacing = np.asarray(self.spacing, dtype=float).reshape(3)

@@ -25,7 +25,7 @@ __all__ = ["read_volume", "write_volume", "atomic_write_text", "atomic_write_byt
            "cardia_pylorus_from_markups", "write_markups_curve", "write_markups_fiducials", "read_label_volume",
            "MARKUPS_SCHEMA", "check_output_folder", "check_outputs_spare_inputs", "check_single_label",
            "label_volumes_ml", "estimate_output_bytes", "point3", "read_json", "MARKUPS_SYSTEMS",
-           "itk_reason", "check_not_truncated", "check_dicom_slices"]
+           "itk_reason", "check_not_truncated", "check_dicom_slices", "check_image_information"]
 
 MARKUPS_SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/Resources/"
                   "Schema/markups-schema-v1.0.3.json#")
@@ -81,12 +81,16 @@ def atomic_write_bytes(path, data: bytes) -> str:
     return _atomic(path, w)
 
 
-def _check_image(img, source: str) -> None:
+def check_image_information(img, source: str) -> None:
+    """InputError unless a SimpleITK image (or an ImageFileReader after ReadImageInformation) is one 3D scalar
+    volume with at least 4 voxels along each axis."""
     dim = img.GetDimension()
     if dim != 3:
         raise InputError(f"{source} is a {dim}D image; a 3D CT volume is needed")
-    if img.GetNumberOfComponentsPerPixel() != 1:
-        raise InputError(f"{source} has {img.GetNumberOfComponentsPerPixel()} components per voxel (a vector or "
+    comps = img.GetNumberOfComponentsPerPixel() if hasattr(img, "GetNumberOfComponentsPerPixel") else \
+        img.GetNumberOfComponents()
+    if comps != 1:
+        raise InputError(f"{source} has {comps} components per voxel (a vector or "
                          "4D image); give a single 3D scalar CT volume")
     if min(img.GetSize()) < 4:
         raise InputError(f"{source} is only {img.GetSize()} voxels; at least 4 along each axis are needed")
@@ -187,13 +191,27 @@ def check_dicom_slices(files, folder) -> None:
                          "a slice is missing: export the complete series")
 
 
-def read_volume(path, series_uid: str | None = None) -> Volume:
-    """Read a 3D CT volume (HU) from a NRRD/NIfTI/MHA file or a DICOM folder into a Volume (LPS geometry)."""
+def read_volume(path, series_uid: str | None = None, stream: bool = False) -> Volume:
+    """Read a 3D CT volume (HU) from a NRRD/NIfTI/MHA file or a DICOM folder into a Volume (LPS geometry).
+
+    With ``stream=True`` a file whose format can be read in boxes (``volume_file.open_volume``) is not read
+    now: the Volume's array is a ``volume_file.FileArray`` that reads the parts looked at, so a run's memory
+    grows with the stomach's crop, not with the CT. Other formats are read whole either way.
+    """
     import SimpleITK as sitk
 
     path = os.fspath(path)
     if not os.path.exists(path):
         raise InputError(f"{path} does not exist")
+    if stream and not os.path.isdir(path):
+        from .volume_file import open_volume
+
+        check_not_truncated(path)
+        vol = open_volume(path)
+        if vol is not None:
+            if vol.array.dtype.kind not in "iuf":
+                raise InputError(f"{path} does not hold numbers (dtype {vol.array.dtype})")
+            return vol
     try:
         if os.path.isdir(path):
             ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(path)
@@ -217,7 +235,7 @@ def read_volume(path, series_uid: str | None = None) -> Volume:
     except RuntimeError as e:
         raise InputError(f"cannot read {path}: {itk_reason(e)}; check that it is a complete NRRD, NIfTI, MHA file "
                          "or DICOM folder (export it again from the viewer or PACS)") from None
-    _check_image(img, path)
+    check_image_information(img, path)
     vol = Volume.from_sitk(img, copy=False)  # read-only view, no second copy of the CT
     if vol.array.dtype.kind not in "iuf":
         raise InputError(f"{path} does not hold numbers (dtype {vol.array.dtype})")

@@ -282,7 +282,7 @@ def flood_fill(image: np.ndarray, seed) -> np.ndarray:
     """
     import SimpleITK as sitk
 
-    if not isinstance(image, BelowThreshold):
+    if not (isinstance(image, BelowThreshold) or hasattr(image, "packed")):  # lazy masks are indexed as they are
         image = np.asarray(image, bool)
     s = tuple(int(x) for x in seed)
     if image.ndim != 3 or len(s) != 3 or any(not 0 <= x < n for x, n in zip(s, image.shape)):
@@ -510,7 +510,8 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     pts = {"cardia": np.asarray(cardia_lps, float).reshape(3), "pylorus": np.asarray(pylorus_lps, float).reshape(3)}
     for name, p in pts.items():
         _check_inside(ct, p, name)
-    air = BelowThreshold(ct.array, threshold_hu)  # thresholded where looked at: no whole-CT mask
+    # thresholded where looked at (no whole-CT mask); a CT on file gives its air from one scan, packed in bits
+    air = ct.array.below(threshold_hu) if hasattr(ct.array, "below") else BelowThreshold(ct.array, threshold_hu)
     if progress is not None:
         progress(0.1)
     seeds = {}

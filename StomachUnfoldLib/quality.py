@@ -98,19 +98,40 @@ def onto_wall(points_lps: np.ndarray, lumen_crop: Volume, sigma_vox: float = 1.0
 
     A lumen voxel centre next to the wall lies up to half a voxel inside the lumen: on 2.5 mm slices more than
     a millimetre in front of the mucosa. The boundary is where the lumen mask, smoothed by ``sigma_vox`` voxels,
-    falls to 0.5; points with no crossing within 1.5 voxels stay where they are.
+    falls to 0.5; points with no crossing within 1.5 voxels stay where they are. The smoothed mask is made in
+    slabs of slices (with the kernel's halo, so the values are those of the whole mask smoothed at once).
     """
     pts = np.asarray(points_lps, float).reshape(-1, 3)
+    out = pts.copy()
     if len(pts) == 0:
-        return pts
-    g = Volume(ndimage.gaussian_filter(lumen_crop.array.astype(np.float32), sigma_vox), lumen_crop.spacing,
-               lumen_crop.origin, lumen_crop.direction)
+        return out
+    lum = lumen_crop.array.view(np.uint8) if lumen_crop.array.dtype == bool else lumen_crop.array.astype(np.uint8)
     sp = np.asarray(lumen_crop.spacing, float)
+    reach = int(np.ceil(1.5 * float(sp.max()) / sp[2])) + 2      # slices a point's samples may reach along k
+    halo = reach + int(4.0 * sigma_vox + 0.5)                     # plus the Gaussian kernel's radius
+    k_of = np.floor(lumen_crop.lps_to_index(pts)[:, 2]).astype(int)
+    n_k, depth = lum.shape[0], 32
+    for k0 in range(min(0, int(k_of.min())), max(n_k, int(k_of.max()) + 1), depth):
+        sel = np.flatnonzero((k_of >= k0) & (k_of < k0 + depth))
+        if len(sel) == 0:
+            continue
+        a, b = max(k0 - halo, 0), min(k0 + depth + halo, n_k)
+        if b <= a:
+            continue
+        g = ndimage.gaussian_filter(lum[a:b], sigma_vox, output=np.float32)
+        lo, hi = max(k0 - reach, 0) - a, min(k0 + depth + reach, n_k) - a  # the exact part of g
+        block = Volume(g[lo:hi], sp, lumen_crop.index_to_lps(np.array([0.0, 0.0, a + lo])), lumen_crop.direction)
+        out[sel] = _onto_boundary(pts[sel], block, lumen_crop.direction, sp)
+    return out
+
+
+def _onto_boundary(pts: np.ndarray, g: Volume, direction: np.ndarray, sp: np.ndarray) -> np.ndarray:
+    """Points (LPS mm) moved along -grad g onto g = 0.5 (g: the smoothed lumen mask, 0 outside its grid)."""
     grad = np.zeros_like(pts)
     for a in range(3):  # central differences along the grid axes, converted to LPS
-        step = lumen_crop.direction[:, a] * sp[a]
+        step = direction[:, a] * sp[a]
         d = (g.sample(pts + step, order=1, cval=0.0) - g.sample(pts - step, order=1, cval=0.0)) / (2.0 * sp[a])
-        grad += d[:, None] * lumen_crop.direction[:, a][None, :]
+        grad += d[:, None] * direction[:, a][None, :]
     norm = np.linalg.norm(grad, axis=1)
     n = -grad / np.maximum(norm, 1e-12)[:, None]
     ts = np.linspace(0.0, 1.5 * float(sp.max()), 25)

@@ -157,10 +157,10 @@ def inner_surface(lumen: np.ndarray, crop: Volume, max_vertices: int, mask_given
     """Iso-surface (LPS mm vertices, triangles) of the inner wall (see surface_field), <= ~max_vertices."""
     from .isosurface import isosurface
 
+    n_edge = int(np.count_nonzero(lumen & ~ndimage.binary_erosion(lumen, border_value=1)))
     field, level = surface_field(crop, lumen, mask_given)
     sm = np.pad(field, 2, constant_values=np.float32(1e4 if not mask_given else 0.0))
-    edge = lumen & ~ndimage.binary_erosion(lumen, border_value=1)
-    n_edge = int(edge.sum())
+    del field  # one crop-sized float field at a time
     step = max(1, int(np.ceil(np.sqrt(n_edge / float(max_vertices)))))
     verts, faces = isosurface(sm, level, step)
     ijk = verts[:, ::-1] - 2.0
