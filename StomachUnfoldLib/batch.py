@@ -255,6 +255,14 @@ def case_record(job: dict) -> dict:
             "software": {"name": "StomachUnfoldLib", "version": __version__}}
 
 
+def _by_content(record):
+    """A record with its input files named by content alone (sha256): a cohort folder moved elsewhere is reused."""
+    if not isinstance(record, dict):
+        return record
+    inputs = {role: {k: v for k, v in entry.items() if k != "path"} for role, entry in record.get("inputs", {}).items()}
+    return {**record, "inputs": inputs}
+
+
 def completed_row(job: dict, record: dict) -> dict | None:
     """The recorded row of a case already done with this record (inputs, parameters) and all outputs, else None."""
     path = os.path.join(job["output"], RECORD_NAME)
@@ -264,7 +272,7 @@ def completed_row(job: dict, record: dict) -> dict | None:
     except (OSError, ValueError):
         return None
     row = old.get("row") or {}
-    if old.get("record") != json.loads(json.dumps(record)) or row.get("status") != "ok":
+    if _by_content(old.get("record")) != _by_content(json.loads(json.dumps(record))) or row.get("status") != "ok":
         return None
     if not all(os.path.exists(os.path.join(job["output"], n)) for n in OUTPUT_FILES):
         return None
@@ -344,14 +352,16 @@ LIBRARIES_BYTES = 300 * 2**20
 def case_memory_bytes(path, mask: bool = False) -> int:
     """Estimated peak resident memory (bytes) of one unfold of the CT at ``path``, from its header alone.
 
-    The libraries, the CT as stored, and a working memory of the CT's size again (measured: at most 0.95x on
-    the 512 x 512 x 500 phantom, whose crop is large; it grows with the crop, unknown before the run). With a
+    The libraries and a working memory that grows with the stomach's crop, unknown before the run: at most
+    the CT's own size for a file read box by box (measured: 0.57x on the 512 x 512 x 500 phantom, whose crop
+    is large), plus the CT itself for a format read whole (a DICOM folder, compressed MetaImage). With a
     stomach mask the label volume resampled onto the CT grid adds the front end's whole-grid estimate.
     """
     import SimpleITK as sitk
 
     from .frontend import estimate_memory_bytes
     from .geometry import Volume
+    from .volume_file import open_volume
 
     if os.path.isdir(path):
         files = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(path)
@@ -369,7 +379,11 @@ def case_memory_bytes(path, mask: bool = False) -> int:
         size = list(r.GetSize())
         bits = sitk.GetPixelIDValueAsString(r.GetPixelID()).split("-")[0]  # "16-bit signed integer"
         nbytes = int(bits) // 8 if bits.isdigit() else 4
-    need = LIBRARIES_BYTES + 2 * nbytes * int(np.prod(size))
+    try:
+        streamed = not os.path.isdir(path) and open_volume(path) is not None  # reads the header only
+    except StomachUnfoldError:
+        streamed = False
+    need = LIBRARIES_BYTES + (1 if streamed else 2) * nbytes * int(np.prod(size))
     if mask:
         stand_in = Volume(np.broadcast_to(np.int16(0), tuple(int(v) for v in size[::-1])))  # a zero stride: no memory
         need += estimate_memory_bytes(stand_in)

@@ -94,6 +94,17 @@ def test_a_local_cluster_batch_reports_each_case_and_reruns_only_what_changed(co
     assert _stamp(out, "bent")["unfolded.nrrd"][0] > before["bent"]["unfolded.nrrd"][0]
     assert json.load(open(os.path.join(out, "bent", "report.json")))["parameters"]["solver"]["kappa"] == 0.3
 
+    # the same files moved to another folder are the same inputs (named by content): nothing reruns
+    import shutil
+
+    moved = tmp_path / "moved"
+    shutil.copytree(cohort, moved)
+    stamps = {c: _stamp(out, c) for c in ("straight", "bent")}
+    assert main(["batch", _manifest(moved, kappa_bent="0.3"), "--output-dir", out, "--workers", "2", "--quiet"]) == 1
+    rows = _summary(out)
+    assert [rows[c]["reused"] for c in ("straight", "bent")] == ["True", "True"]
+    assert {c: _stamp(out, c)["unfolded.nrrd"] for c in stamps} == {c: stamps[c]["unfolded.nrrd"] for c in stamps}
+
 
 def _free_port():
     with socket.socket() as s:
