@@ -373,6 +373,7 @@ def full_size_run(path: str, truth: dict, out_dir: str, profile: bool = False) -
     import shutil
     import tempfile
 
+    from StomachUnfoldLib.frontend import return_freed_memory
     from StomachUnfoldLib.io import read_volume
     from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
     from .markers import marker_metrics
@@ -383,8 +384,9 @@ def full_size_run(path: str, truth: dict, out_dir: str, profile: bool = False) -
         prof = cProfile.Profile() if profile else None
         if prof:
             prof.enable()
+        return_freed_memory()  # as the command line does
         t = time.perf_counter()
-        vol = read_volume(path)
+        vol = read_volume(path, stream=True)  # as the command line: left on file, read box by box by the front end
         read_s = time.perf_counter() - t
         res = unfold(vol, truth["cardia_lps"], truth["pylorus_lps"], UnfoldParameters())
         t_write = time.perf_counter()

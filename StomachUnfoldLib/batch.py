@@ -35,7 +35,7 @@ from .errors import InputError, StomachUnfoldError
 
 __all__ = ["MANIFEST_COLUMNS", "RECORD_NAME", "SUMMARY_FIELDS", "OUTPUT_FILES", "read_manifest",
            "manifest_from_folder", "parse_sweep", "expand_cases", "file_sha256", "case_record", "completed_row",
-           "run_case", "case_memory_bytes", "LIBRARIES_BYTES", "worker_plan", "WORKER_OVERHEAD_BYTES",
+           "run_case", "run_case_in_worker", "case_memory_bytes", "LIBRARIES_BYTES", "worker_plan", "WORKER_OVERHEAD_BYTES",
            "paper_categories", "table1", "table1_markdown", "write_summary", "contact_sheet", "run_batch"]
 
 #: The manifest's own columns; every other column is a parameter override.
@@ -295,7 +295,6 @@ def _row_from_report(row: dict, rep, seconds: float) -> dict:
 
 def run_case(job: dict, record: dict) -> dict:
     """Unfold one case (read, unfold, write its outputs and record) and return its summary row; never raises."""
-    from .frontend import return_freed_memory
     from .io import atomic_write_text, cardia_pylorus_from_markups, read_label_volume, read_volume
     from .params import UnfoldParameters
     from .pipeline import unfold
@@ -310,7 +309,6 @@ def run_case(job: dict, record: dict) -> dict:
             os.remove(os.path.join(job["output"], RECORD_NAME))  # a run cut short leaves no matching record
         except FileNotFoundError:
             pass
-        return_freed_memory()
         ct = read_volume(record["inputs"]["input"]["path"], stream=True)  # read box by box: memory follows the crop
         cardia, pylorus = cardia_pylorus_from_markups(record["inputs"]["points"]["path"])
         mask = None
@@ -334,6 +332,14 @@ def run_case(job: dict, record: dict) -> dict:
     except OSError as e:
         row.update(status="error", error=f"cannot write {job['output']}: {e}")
     return row
+
+
+def run_case_in_worker(job: dict, record: dict) -> dict:
+    """:func:`run_case` in a worker process the batch owns: freed memory goes back to the system at once first."""
+    from .frontend import return_freed_memory
+
+    return_freed_memory()
+    return run_case(job, record)
 
 
 def _json_default(o):
@@ -611,7 +617,7 @@ def run_batch(cases: list[dict], out_dir, sweep: tuple[str, list[str]] | None = 
         for i, job, record in todo:
             finish(i, run_case(job, record))
     else:
-        futures = {executor.submit(run_case, job, record): (i, job) for i, job, record in todo}
+        futures = {executor.submit(run_case_in_worker, job, record): (i, job) for i, job, record in todo}
         for fut in cf.as_completed(futures):
             i, job = futures[fut]
             try:

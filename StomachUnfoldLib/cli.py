@@ -454,8 +454,10 @@ def _cmd_batch(args) -> int:
     import contextlib
 
     from .batch import parse_sweep, read_manifest, run_batch
+    from .frontend import return_freed_memory
     from .params import parameter_specs
 
+    return_freed_memory()  # for cases run here (--no-dask); the workers do it themselves
     cases = read_manifest(args.manifest)
     sweep = parse_sweep(args.sweep)
     base = {spec.name: getattr(args, spec.name) for spec in parameter_specs()}
