@@ -231,3 +231,16 @@ def test_largest_defect_finds_a_hole_and_a_fold_left_after_peeling():
     uv2 = np.vstack([uv, uv + 0.3])                           # a 6 x 6 mm copy laid over the sheet: a fold
     fold = np.vstack([f, (c[7:13, 7:13].reshape(-1, 3) + len(uv))])
     assert 25.0 < largest_defect_mm2(uv2, fold, 0.45) < 42.0
+
+
+def test_overlap_test_of_chosen_triangles_matches_the_whole_test():
+    from StomachUnfoldLib.methods.isometric import overlapping_triangles
+
+    rng = np.random.default_rng(2)
+    uv = rng.uniform(0, 20, size=(300, 2))
+    f = np.array([rng.choice(300, 3, replace=False) for _ in range(400)])
+    whole = overlapping_triangles(f, uv)
+    assert 0 < whole.sum() < len(f)
+    some = np.sort(rng.choice(len(f), 120, replace=False))
+    np.testing.assert_array_equal(overlapping_triangles(f, uv, query=some), whole[some])
+    assert overlapping_triangles(f, uv, query=np.array([], int)).shape == (0,)

@@ -365,24 +365,29 @@ def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1
     return f, f0 - len(f)
 
 
-def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16) -> np.ndarray:
-    """Bool per triangle: its centroid lies strictly inside another triangle of the flat map uv (V,2 mm), a fold."""
+def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16, query=None) -> np.ndarray:
+    """Bool per triangle: its centroid lies strictly inside another triangle of the flat map uv (V,2 mm), a fold.
+
+    ``query``: indices of the triangles to test (default all); the result then has one entry per index.
+    """
     from scipy.spatial import cKDTree
 
-    if len(f) < 2:
-        return np.zeros(len(f), bool)
+    n_q = len(f) if query is None else len(query)
+    if len(f) < 2 or n_q == 0:
+        return np.zeros(n_q, bool)
     P = uv[f]                                                   # (F,3,2)
     c = P.mean(1)
+    own = np.arange(len(f)) if query is None else np.asarray(query, int)
     k = min(candidates, len(f))
-    _, nb = cKDTree(c).query(c, k=k)                            # (F,k) nearby triangles
-    a, b, d = P[nb, 0], P[nb, 1], P[nb, 2]                      # (F,k,2)
-    q = c[:, None, :]
+    _, nb = cKDTree(c).query(c[own], k=k)                       # (Q,k) nearby triangles
+    a, b, d = P[nb, 0], P[nb, 1], P[nb, 2]                      # (Q,k,2)
+    q = c[own][:, None, :]
     den = (b[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])
     den = np.where(np.abs(den) > 1e-12, den, np.nan)
     l1 = ((q[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1]) - (q[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])) / den
     l2 = ((b[..., 0] - a[..., 0]) * (q[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (q[..., 0] - a[..., 0])) / den
     inside = (l1 > 1e-3) & (l2 > 1e-3) & (1 - l1 - l2 > 1e-3)
-    inside &= nb != np.arange(len(f))[:, None]
+    inside &= nb != own[:, None]
     return inside.any(1)
 
 
@@ -392,16 +397,15 @@ def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40) -> tuple[np.n
     neighbours, hidden rather than shown twice). Returns (kept triangles, number dropped)."""
     f0 = len(f)
     for _ in range(rounds):
-        over = overlapping_triangles(f, uv)
-        if not over.any():
-            break
         ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
         ue, inv, cnt = _unique_rows(ee, return_inverse=True, return_counts=True)
-        on_b = (cnt == 1)[inv.ravel()].reshape(3, -1).any(0)
-        drop = over & on_b
-        if not drop.any():
+        on_b = np.flatnonzero((cnt == 1)[inv.ravel()].reshape(3, -1).any(0))
+        drop = on_b[overlapping_triangles(f, uv, query=on_b)]  # only boundary triangles are peeled: test those
+        if len(drop) == 0:
             break
-        f = f[~drop]
+        keep = np.ones(len(f), bool)
+        keep[drop] = False
+        f = f[keep]
     return f, f0 - len(f)
 
 
