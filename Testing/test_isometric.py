@@ -237,8 +237,9 @@ def test_overlap_test_of_chosen_triangles_matches_the_whole_test():
     from StomachUnfoldLib.methods.isometric import overlapping_triangles
 
     rng = np.random.default_rng(2)
-    uv = rng.uniform(0, 20, size=(300, 2))
-    f = np.array([rng.choice(300, 3, replace=False) for _ in range(400)])
+    centres = rng.uniform(0, 40, size=(400, 2))  # small triangles scattered: some overlap, most do not
+    uv = (centres[:, None, :] + rng.uniform(-1.5, 1.5, size=(400, 3, 2))).reshape(-1, 2)
+    f = np.arange(1200).reshape(400, 3)
     whole = overlapping_triangles(f, uv)
     assert 0 < whole.sum() < len(f)
     some = np.sort(rng.choice(len(f), 120, replace=False))
