@@ -21,6 +21,7 @@ read whole by :func:`StomachUnfoldLib.io.read_volume`.
 from __future__ import annotations
 
 import os
+import threading
 import zlib
 
 import numpy as np
@@ -33,6 +34,8 @@ __all__ = ["FileArray", "PackedMask", "open_volume", "SLAB_SLICES"]
 SLAB_SLICES = 16
 #: Decompressed bytes between the points a gzip NRRD's later reads resume from (a zlib state each, about 40 kB).
 MARK_BYTES = 8 << 20
+#: Threads that decompress the parts of one box of a gzip NRRD at once (from the scan's marks).
+MAX_READ_THREADS = 4
 #: Compressed bytes read, and decompressed bytes produced, at a time from a gzip NRRD.
 GZIP_READ_BYTES, GZIP_CHUNK_BYTES = 1 << 20, 4 << 20
 
@@ -229,9 +232,15 @@ class _NrrdBackend:
         self.path, self.offset, self.dtype, self.shape, self.gzip = path, offset, np.dtype(dtype), tuple(shape), gzip
         self.slice_bytes = self.shape[1] * self.shape[2] * self.dtype.itemsize
         self._marks = []  # (uncompressed offset, file offset, zlib state) recorded while decompressing
+        self._lock = threading.Lock()
 
     def __getstate__(self):
-        return {**self.__dict__, "_marks": []}  # zlib states do not pickle; a copy starts from the beginning
+        state = {**self.__dict__, "_marks": []}  # zlib states do not pickle; a copy starts from the beginning
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state, _lock=threading.Lock())
 
     def _native(self, a: np.ndarray) -> np.ndarray:
         return a.astype(self.dtype.newbyteorder("="), copy=True)
@@ -246,9 +255,31 @@ class _NrrdBackend:
             finally:
                 del mm
         out = np.empty((hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]), self.dtype.newbyteorder("="))
-        for k0, block in self._gzip_slabs(lo[0], hi[0], SLAB_SLICES):
-            out[k0 - lo[0]:k0 - lo[0] + len(block)] = block[box]
+
+        def part(ka, kb):
+            for k0, block in self._gzip_slabs(ka, kb, SLAB_SLICES):
+                out[k0 - lo[0]:k0 - lo[0] + len(block)] = block[box]
+        parts = self._parts(lo[0], hi[0])
+        if len(parts) == 1:
+            part(*parts[0])
+        else:  # zlib lets go of the GIL while it inflates: parts from their own marks on several cores
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(len(parts)) as pool:
+                for fut in [pool.submit(part, a, b) for a, b in parts]:
+                    fut.result()
         return out
+
+    def _parts(self, k_lo: int, k_hi: int) -> list[tuple[int, int]]:
+        """Slices k_lo..k_hi-1 split into up to one part per core, each starting just after a recorded mark."""
+        n = min(os.cpu_count() or 1, MAX_READ_THREADS)
+        starts = sorted({-(-m[0] // self.slice_bytes) for m in self._marks})
+        starts = [k for k in starts if k_lo < k < k_hi]
+        if n < 2 or not starts or k_hi - k_lo < 2 * SLAB_SLICES:
+            return [(k_lo, k_hi)]
+        cuts = sorted({starts[min(len(starts) - 1, int(round(j * len(starts) / n)))] for j in range(1, n)})
+        edges = [k_lo] + cuts + [k_hi]
+        return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
     def slabs(self, shape, depth):
         if not self.gzip:
@@ -274,7 +305,9 @@ class _NrrdBackend:
                     if not data:
                         return
                 if u >= (self._marks[-1][0] + MARK_BYTES if self._marks else MARK_BYTES):
-                    self._marks.append((u, f.tell() - len(data), d.copy()))  # resume here later
+                    with self._lock:  # parts read in threads: marks stay in order
+                        if not self._marks or u >= self._marks[-1][0] + MARK_BYTES:
+                            self._marks.append((u, f.tell() - len(data), d.copy()))  # resume here later
                 try:
                     out = d.decompress(data, GZIP_CHUNK_BYTES)
                 except zlib.error as e:
