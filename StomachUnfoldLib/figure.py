@@ -211,27 +211,36 @@ def _strip_labels(canvas, x, top, H, items, size):
     return boxes
 
 
-def _landmarks(canvas, marks_px: dict, size: int) -> dict:
-    """Rings (cyan) and names at view pixels {name: (x, y)}; returns {name: [x, y]}."""
+#: Ring colours on the view: landmarks (cyan) and peeled folds whose mucosa is not shown (orange, dashed).
+LANDMARK_RGB, FOLD_RGB = (0.2, 0.95, 1.0), (1.0, 0.55, 0.1)
+
+
+def _landmarks(canvas, marks_px: dict, size: int, colour=LANDMARK_RGB, radii: dict | None = None,
+               dashed: bool = False) -> dict:
+    """Rings and names at view pixels {name: (x, y)} (radius from ``radii`` {name: px}, else a fixed one);
+    returns {name: [x, y]}."""
     yy, xx = np.mgrid[0:canvas.shape[0], 0:canvas.shape[1]]
-    r = max(4.0, size * 0.45)
     out = {}
     for name, (x, y) in marks_px.items():
+        r = max(4.0, size * 0.45, (radii or {}).get(name, 0.0))
         ring = np.abs(np.hypot(xx - x, yy - y) - r) < 1.1
-        canvas[ring] = (0.2, 0.95, 1.0)
-        _label(canvas, str(name), x + r + 2, y - r, max(9, int(size * 0.7)), anchor="left",
-               colour=(0.2, 0.95, 1.0), shadow=True)
+        if dashed:  # eight dashes round the ring
+            ring &= (np.floor((np.arctan2(yy - y, xx - x) + np.pi) / (np.pi / 8)) % 2) == 0
+        canvas[ring] = colour
+        _label(canvas, str(name), x + 0.7 * r + 2, y - 0.7 * r, max(9, int(size * 0.7)), anchor="left",
+               colour=colour, shadow=True)
         out[str(name)] = [float(x), float(y)]
     return out
 
 
 def annotate_panel(rgb: np.ndarray, spacing_ij, trusted: np.ndarray, orient: dict, width_px: int,
-                   title: str = "", landmarks_ij: dict | None = None):
+                   title: str = "", landmarks_ij: dict | None = None, folds_ij: dict | None = None):
     """One labelled panel: the view ``rgb`` (0-1, rows = j from top (high) to bottom, columns = i) resampled to
     ``width_px`` pixels wide with square pixels, its scale bar (mm) and orientation labels.
 
     ``trusted`` (j, i) marks the view's pixels where lengths hold; ``orient`` is :func:`orientation`'s;
-    ``landmarks_ij`` {name: (i, j) continuous view index}. Returns (canvas float RGB 0-1, layout dict in pixels).
+    ``landmarks_ij`` {name: (i, j) continuous view index}; ``folds_ij`` {name: (i, j, radius mm)} of peeled
+    folds (dashed orange rings). Returns (canvas float RGB 0-1, layout dict in pixels).
     """
     nj, ni = rgb.shape[:2]
     si, sj = float(spacing_ij[0]), float(spacing_ij[1])
@@ -268,8 +277,12 @@ def annotate_panel(rgb: np.ndarray, spacing_ij, trusted: np.ndarray, orient: dic
         px = {n: (left + (p[0] + 0.5) / ni * W, top + (nj - (p[1] + 0.5)) / nj * H) for n, p in landmarks_ij.items()
               if np.all(np.isfinite(p[:2]))}
         marks = _landmarks(canvas, px, font)
+    folds = {}
+    if folds_ij:
+        px = {n: (left + (p[0] + 0.5) / ni * W, top + (nj - (p[1] + 0.5)) / nj * H) for n, p in folds_ij.items()}
+        folds = _landmarks(canvas, px, font, FOLD_RGB, {n: p[2] / px_mm for n, p in folds_ij.items()}, dashed=True)
     layout = {"title": title, "view_origin_px": [left, top], "view_size_px": [W, H], "pixel_mm": px_mm,
-              "scale_bar": bar, "labels": labels, "landmarks_px": marks}
+              "scale_bar": bar, "labels": labels, "landmarks_px": marks, "folds_px": folds}
     return canvas, layout
 
 
@@ -312,13 +325,14 @@ def compose_view(panels, gap_px: int = 8):
 
 
 def write_view(unfolded: Volume, path: str, shaded: np.ndarray, dmap=None, orient: dict | None = None,
-               view_size: int | None = None, landmarks_lps: dict | None = None) -> dict:
+               view_size: int | None = None, landmarks_lps: dict | None = None, folds: list | None = None) -> dict:
     """Write ``view.png``: the shaded view (``view.shade_first_hit``'s uint8 RGB) and the density panel side by side,
     each ``view_size`` pixels wide (default: the view's own width, at least 512), labelled and with a scale bar.
 
     ``dmap``: the DistortionMap (the bar goes where lengths hold; without it, anywhere on the view); ``orient``:
-    :func:`orientation`'s labels; ``landmarks_lps``: {name: LPS mm in the unfolded frame} drawn as rings.
-    Returns the layout {"pixel_mm", "panels": [...], "orientation"} (pixels of the PNG, rows top to bottom).
+    :func:`orientation`'s labels; ``landmarks_lps``: {name: LPS mm in the unfolded frame} drawn as rings;
+    ``folds``: the method's peeled folds (``view_ij``, ``area_mm2``), whose mucosa is not shown, drawn as
+    dashed orange rings F1, F2, ... of the same area. Returns the layout {"pixel_mm", "panels": [...], "orientation"} (pixels of the PNG, rows top to bottom).
     """
     from .distortion import TRUST_LIMIT
     from .view import first_hit, write_png
@@ -337,12 +351,14 @@ def write_view(unfolded: Volume, path: str, shaded: np.ndarray, dmap=None, orien
     if landmarks_lps:
         marks = {n: unfolded.lps_to_index(np.asarray(p, float)[None])[0] for n, p in landmarks_lps.items()
                  if np.all(np.isfinite(p))}
+    fold_marks = {f"F{n}": (*fd["view_ij"], float(np.sqrt(fd["area_mm2"] / np.pi)))
+                  for n, fd in enumerate(folds or [], 1) if "view_ij" in fd}
     orient = orient or {}
     lo, hi = DENSITY_WINDOW_HU
     panels = [annotate_panel(shaded.astype(float) / 255.0, unfolded.spacing[:2], trusted, orient, width,
-                             "shaded mucosa", marks),
+                             "shaded mucosa", marks, fold_marks),
               annotate_panel(dens, unfolded.spacing[:2], trusted, orient, width,
-                             f"wall density {lo:g} to {hi:g} HU", marks)]
+                             f"wall density {lo:g} to {hi:g} HU", marks, fold_marks)]
     _colour_legend(*panels[1])
     img, layouts = compose_view(panels)
     write_png(img, path)

@@ -360,7 +360,7 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     params.validate()
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     seconds: dict[str, float] = {}
-    if hasattr(ct.array, "scan") and mask is None:  # a CT on file: one pass for the value range and the air
+    if hasattr(getattr(ct, "array", None), "scan") and mask is None:  # a CT on file: one pass, range and air
         ct.array.scan(params.air_threshold_hu)
     warnings = check_volume(ct)
     cardia, pylorus, w = check_points(ct, cardia_lps, pylorus_lps, params.swap_check)

@@ -121,7 +121,8 @@ class UnfoldResult:
             view = shade_first_hit(self.unfolded)  # shaded once, for the view and its distortion overlay
             mapped = self.map_landmarks(landmarks_lps) if landmarks_lps else {}
             self.report["view"] = write_view(self.unfolded, path("view.png"), view, self.distortion(),
-                                             self.orientation(), view_size, mapped)
+                                             self.orientation(), view_size, mapped,
+                                             (self.report["method"] or {}).get("hidden_folds"))
             write_distortion(self.unfolded, self.distortion(), path("distortion.nrrd"), path("distortion.png"), view)
             write_vtu(self.mesh.rest_lps, self.mesh.cells, path("model_rest.vtu"))
             write_vtu(self.mesh.unfolded_lps, self.mesh.cells, path("model_unfolded.vtu"))
@@ -259,10 +260,13 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
                                                     result.centerline_lps, progress=lambda f: report(0.2 + 0.8 * f),
                                                     folded=dmap.multiple if out.mesh.kind == "triangle" else None)
             result.report.quality["distortion_map"] = dmap.summary()
-    from .plausibility import plausibility_warnings
+    from .plausibility import hidden_fold_warnings, plausibility_warnings
 
+    orient = result.orientation() if params.quality else None
     result.report.warnings += plausibility_warnings(
         ct, prep.cardia_lps, prep.pylorus_lps, (prep.air_info or {}).get("volume_ml"), result.report.quality,
-        out.unfolded, result.orientation() if params.quality else None)
+        out.unfolded, orient)
+    result.report.warnings += hidden_fold_warnings(out.report.get("hidden_folds") or [], out.unfolded,
+                                                   out.correspondence, orient)
     seconds["total"] = time.perf_counter() - t_all
     return result

@@ -6,7 +6,7 @@ import numpy as np
 
 from .geometry import Volume
 
-__all__ = ["plausibility_warnings", "failure_regions", "MIN_STOMACH_ML"]
+__all__ = ["plausibility_warnings", "failure_regions", "hidden_fold_warnings", "where_on_view", "MIN_STOMACH_ML"]
 
 #: A lumen smaller than this (mL) is an air pocket, not a stomach (a gas-distended stomach holds hundreds of mL).
 MIN_STOMACH_ML = 50.0
@@ -38,13 +38,41 @@ def failure_regions(unfolded: Volume, orient: dict | None = None, min_area_mm2: 
             area = len(jj) * px
             if area <= min_area_mm2:
                 continue
-            fi, fj = ii.mean() / max(ni - 1, 1), jj.mean() / max(nj - 1, 1)
-            along = (f"near the {orient.get('left') or 'left end'}" if fi < 1 / 3 else
-                     f"near the {orient.get('right') or 'right end'}" if fi > 2 / 3 else "mid-way")
-            half = orient.get("upper_half") if fj > 0.5 else orient.get("lower_half")
-            where = along + (f", {half} half" if half else (", upper half" if fj > 0.5 else ", lower half"))
-            out.append({"kind": kind, "area_mm2": float(area), "where": where,
+            out.append({"kind": kind, "area_mm2": float(area), "where": where_on_view(ii.mean(), jj.mean(), seen.shape,
+                                                                                    orient),
                         "centroid_ij": [float(ii.mean()), float(jj.mean())]})
+    return out
+
+
+def where_on_view(i: float, j: float, shape, orient: dict | None = None) -> str:
+    """Where view pixel (i, j) lies, in words: the third along the view (named by ``orient``'s ends) and the half."""
+    orient = orient or {}
+    nj, ni = shape
+    fi, fj = i / max(ni - 1, 1), j / max(nj - 1, 1)
+    along = (f"near the {orient.get('left') or 'left end'}" if fi < 1 / 3 else
+             f"near the {orient.get('right') or 'right end'}" if fi > 2 / 3 else "mid-way")
+    half = orient.get("upper_half") if fj > 0.5 else orient.get("lower_half")
+    return along + (f", {half} half" if half else (", upper half" if fj > 0.5 else ", lower half"))
+
+
+def hidden_fold_warnings(folds: list[dict], unfolded: Volume, correspondence, orient: dict | None = None) -> list[str]:
+    """One warning per peeled fold of the flat map (``folds``: area mm^2, centroid LPS mm, from the method): its
+    mucosa is not shown, so say how much and where; each fold gets ``view_ij`` (its place on the view, pixels:
+    the mean of its rim ``rim_lps`` mapped, which is dropped) and ``where`` added."""
+    out = []
+    for n, fold in enumerate(folds, 1):
+        rim = np.asarray(fold.pop("rim_lps", []), float).reshape(-1, 3)  # its edge on the kept map
+        q = correspondence.to_unfolded(rim) if len(rim) else np.zeros((0, 3))
+        q = q[np.all(np.isfinite(q), axis=1)]
+        if len(q):
+            p = q.mean(0)
+            ij = unfolded.lps_to_index(p[None])[0][:2]
+            fold["view_ij"] = [float(ij[0]), float(ij[1])]
+            fold["where"] = where_on_view(ij[0], ij[1], unfolded.array.shape[1:], orient)
+        where = f" {fold['where']}" if "where" in fold else ""
+        out.append(f"a fold of the flat map was peeled off: {fold['area_mm2']:.0f} mm^2 of mucosa{where} (ring F{n} "
+                   "on view.png) is not shown, its place taken by the mucosa around it; read that part on the "
+                   "original CT")
     return out
 
 

@@ -519,11 +519,12 @@ def orient_and_scale(uv: np.ndarray, cut: CutSurface, s: float, scale: bool = Tr
     return uv, flipped, float(area3)
 
 
-def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None):
+def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden_lps: np.ndarray | None = None):
     """Rasterise a flat map (uv mm) of a CutSurface and sample the CT along the normals into the unfolded Volume.
 
     Returns (Volume (HU, k toward the viewer), to_unfolded, to_original, Mesh, info); the maps take and give
-    (N,3) LPS mm (NaN off the wall).
+    (N,3) LPS mm (NaN off the wall). ``hidden_lps``: vertices (LPS mm) of surface left out of the map (a peeled
+    fold): CT points nearer to them than to the map's surface are not on the view (NaN), not moved onto it.
     """
     from .methods import Mesh
 
@@ -548,7 +549,7 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None):
     jj, ii = np.nonzero(covered)
     arr[:, jj, ii] = prof.T
     vol = Volume(to_int16(arr), np.full(3, s), np.zeros(3), np.eye(3))
-    to_unfolded, to_original = _flat_maps(v, f, vn, uv, tri, bary, s, k0, w)
+    to_unfolded, to_original = _flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps)
     mesh = Mesh(v, np.concatenate([uv, np.full((len(uv), 1), k0 * s)], 1), f, "triangle", f)
     info = {"size_ij": [ni, nj], "depth_samples_k": nk, "spacing_mm": s,
             "param_overlap_pixel_fraction": float((hits > 1).sum() / max(int(covered.sum()), 1))}
@@ -595,11 +596,12 @@ def _rim(uv, f, tri, bary, s):
     return tri, bary
 
 
-def _flat_maps(v, f, vn, uv, tri, bary, s, k0, w):
+def _flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):
     """CT LPS mm -> unfolded LPS mm through the surface's nearest triangles, and back through the raster."""
     nj, ni = tri.shape
     # --- map from the CT ------------------------------------------------------------------------------------
     tree = cKDTree(v)
+    hidden = cKDTree(np.asarray(hidden_lps, float)) if hidden_lps is not None and len(hidden_lps) else None
     order = np.argsort(np.concatenate([f[:, 0], f[:, 1], f[:, 2]]), kind="stable")
     vt_face = np.tile(np.arange(len(f)), 3)[order]
     vt_start = np.searchsorted(np.concatenate([f[:, 0], f[:, 1], f[:, 2]])[order], np.arange(len(v) + 1))
@@ -645,6 +647,8 @@ def _flat_maps(v, f, vn, uv, tri, bary, s, k0, w):
         fk = k0 - depth / s
         res = np.stack([uvp[:, 0], uvp[:, 1], fk * s], 1)
         res[dist > max_dist] = np.nan
+        if hidden is not None:  # nearer to a peeled fold than to the map: that mucosa is not shown
+            res[hidden.query(p)[0] < dist] = np.nan
         return res
 
     def to_original(points_lps) -> np.ndarray:

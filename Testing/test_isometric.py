@@ -136,7 +136,8 @@ def test_tiny_phantom_grade_and_distortion(tiny_run):
     _, _, res = tiny_run
     q, m = res.report["quality"], res.report["method"]
     assert q["grade"] in ("excellent", "good")
-    assert q["visible_fraction"] >= 0.97
+    # a peeled fold's mucosa counts as hidden (about 3 % here, at the narrow pyloric end)
+    assert q["visible_fraction"] >= 0.95
     assert q["inverted_fraction"] == 0.0
     assert m["edge_ratio_max"] < 1.5 and q["broken_springs_fraction"] == 0.0
     assert m["euler_characteristic"] == 1 and m["boundary_loops"] == 1
@@ -155,7 +156,8 @@ def test_tiny_phantom_markers_in_arc_order_and_round_trip(tiny_run):
     pts = mucosa_points(res.lumen_crop, res.centerline_lps, max_points=500)
     back = res.correspondence.to_original(res.correspondence.to_unfolded(pts))
     err = np.linalg.norm(back - pts, axis=1)
-    assert np.nanmedian(err) < 1.5 and np.mean(np.isfinite(err)) > 0.97
+    # every point maps and back, but the mucosa under a peeled fold, which is not on the view
+    assert np.nanmedian(err) < 1.5 and np.mean(np.isfinite(err)) > 0.97 - res.report["method"]["hidden_fold_fraction"]
 
 
 def test_cancel_raises():
@@ -245,3 +247,21 @@ def test_overlap_test_of_chosen_triangles_matches_the_whole_test():
     some = np.sort(rng.choice(len(f), 120, replace=False))
     np.testing.assert_array_equal(overlapping_triangles(f, uv, query=some), whole[some])
     assert overlapping_triangles(f, uv, query=np.array([], int)).shape == (0,)
+
+
+def test_a_peeled_fold_is_hidden_warned_and_ringed_on_the_view(tiny_run, tmp_path):
+    _, truth, res = tiny_run
+    m = res.report["method"]
+    folds = m["hidden_folds"]
+    assert folds and m["hidden_fold_mm2"] >= sum(f["area_mm2"] for f in folds) > 25.0
+    warned = [w for w in res.report["warnings"] if "fold of the flat map was peeled" in w]
+    assert len(warned) == len(folds) and all(f"ring F{n}" in w for n, w in enumerate(warned, 1))
+    assert all("view_ij" in f and "rim_lps" not in f for f in folds)
+    # the mucosa under the fold is not on the view: the share of mucosa points mapped drops by about its area
+    pts = mucosa_points(res.lumen_crop, res.centerline_lps, max_points=4000)
+    on_view = np.all(np.isfinite(res.correspondence.to_unfolded(pts)), axis=1).mean()
+    assert 0 < m["hidden_fold_fraction"] < 0.2
+    assert on_view < 1.0 - 0.5 * m["hidden_fold_fraction"]
+    res.write(str(tmp_path))
+    rings = res.report["view"]["panels"][0]["folds_px"]
+    assert sorted(rings) == [f"F{n}" for n in range(1, len(folds) + 1)]

@@ -391,11 +391,12 @@ def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16, q
     return inside.any(1)
 
 
-def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40) -> tuple[np.ndarray, int]:
+def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40, return_dropped: bool = False):
     """Peel a flap of the flat map folded over the rest, from its free edge in: boundary triangles that overlap
     another are dropped, round by round, until no boundary triangle overlaps (the mucosa under them maps to their
-    neighbours, hidden rather than shown twice). Returns (kept triangles, number dropped)."""
-    f0 = len(f)
+    neighbours, hidden rather than shown twice). Returns (kept triangles, number dropped), and the dropped
+    triangles (vertex indices) too with ``return_dropped``."""
+    f0, dropped = len(f), []
     for _ in range(rounds):
         ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
         ue, inv, cnt = _unique_rows(ee, return_inverse=True, return_counts=True)
@@ -405,7 +406,10 @@ def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40) -> tuple[np.n
             break
         keep = np.ones(len(f), bool)
         keep[drop] = False
+        dropped.append(f[drop])
         f = f[keep]
+    if return_dropped:
+        return f, f0 - len(f), (np.concatenate(dropped) if dropped else np.zeros((0, 3), f.dtype))
     return f, f0 - len(f)
 
 
@@ -744,7 +748,12 @@ class IsometricFlattening(Method):
             info["flat_overlap_fraction"] = _overlap_fraction(uv, cut.f, prep.pixel_mm)
             if fb is not None and info["flat_overlap_fraction"] <= OVERLAP_TOLERANCE:
                 fb = None                      # a small fold: peeled off the converged map
-            uv, f_keep = _settle(cut, (uv, fb, lambda: arap(cut.v, cut.f, uv0)[0]), prep.pixel_mm, info)
+            uv, f_keep, f_fold = _settle(cut, (uv, fb, lambda: arap(cut.v, cut.f, uv0)[0]), prep.pixel_mm, info)
+            hidden = cut.v[np.unique(f_fold)] if len(f_fold) else None  # the peeled folds' mucosa: not on the view
+            info["hidden_folds"] = hidden_folds(cut.v, f_fold, f_keep)
+            info["hidden_fold_mm2"] = float(triangle_frames(cut.v, f_fold)[1].sum()) if len(f_fold) else 0.0
+            info["hidden_fold_fraction"] = info["hidden_fold_mm2"] / max(float(triangle_frames(cut.v, cut.f)[1].sum()),
+                                                                       1e-9)  # of the whole cut-open wall
             if info["peeled_triangles"] or info["peeled_overlap_triangles"]:
                 cut, uv = _with_faces(cut, f_keep, uv)
             uv, flipped_frac = orient_rigid(uv, cut, prep.pixel_mm)
@@ -754,7 +763,7 @@ class IsometricFlattening(Method):
         if info["flipped_final"]:
             warnings.append(f"the flat map has {info['flipped_final']} flipped triangles")
         with timed_stage(progress, "volume", seconds, 0.6, 1.0) as report:
-            vol, fwd, inv, mesh, vinfo = sample_flat_map(prep, cut, uv, report)
+            vol, fwd, inv, mesh, vinfo = sample_flat_map(prep, cut, uv, report, hidden_lps=hidden)
         cut_len = float(np.linalg.norm(cut.v[cut.boundary_edges[:, 0]] - cut.v[cut.boundary_edges[:, 1]],
                                        axis=1).sum()) if len(cut.boundary_edges) else 0.0
         section = {"lumen_fluid_fraction": fluid, **cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
@@ -778,17 +787,42 @@ def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarr
         is_fb = ("converged", "crossing-free iterate", "plain ARAP")[n]
         u, _, flipped = untangle(cand, cut.f)
         f_keep, n_peel = peel_boundary(cut.v, cut.f, u)
-        f_keep, n_over = peel_overlaps(f_keep, u)
+        f_keep, n_over, f_fold = peel_overlaps(f_keep, u, return_dropped=True)
         hole = largest_defect_mm2(u, f_keep, s)
         if best is None or hole < best[0]:
-            best = (hole, is_fb, u, f_keep, flipped, n_peel, n_over)
+            best = (hole, is_fb, u, f_keep, flipped, n_peel, n_over, f_fold)
         if hole <= HOLE_MM2:
             break
-    hole, is_fb, u, f_keep, flipped, n_peel, n_over = best
+    hole, is_fb, u, f_keep, flipped, n_peel, n_over, f_fold = best
     info.update(used_crossing_free_iterate=is_fb == "crossing-free iterate", flat_map_used=is_fb,
                 flipped_after_untangle=flipped, peeled_triangles=n_peel,
                 peeled_overlap_triangles=n_over, flat_defect_mm2=hole)
-    return u, f_keep
+    return u, f_keep, f_fold
+
+
+def hidden_folds(v: np.ndarray, f_fold: np.ndarray, f_keep: np.ndarray, min_area_mm2: float = HOLE_MM2,
+                 rim_points: int = 64) -> list[dict]:
+    """The peeled folds' mucosa, not shown in the view: one entry per patch of peeled triangles (f_fold, joined by
+    shared vertices of v, LPS mm) over ``min_area_mm2``: its area (mm^2), area-weighted centroid (LPS mm) and up
+    to ``rim_points`` of its vertices on the kept map (``rim_lps``, LPS mm: where the fold lies on the view)."""
+    from scipy.sparse.csgraph import connected_components
+
+    if len(f_fold) == 0:
+        return []
+    _, area = triangle_frames(v, f_fold)
+    used, local = np.unique(f_fold, return_inverse=True)
+    n, lab = connected_components(_adjacency(local.reshape(-1, 3), len(used)), directed=False)
+    tri_lab = lab[local.reshape(-1, 3)[:, 0]]
+    cent = v[f_fold].mean(1)
+    out = []
+    for c in range(n):
+        m = tri_lab == c
+        a = float(area[m].sum())
+        if a > min_area_mm2:
+            rim = np.intersect1d(f_fold[m].ravel(), f_keep.ravel())
+            rim = rim[np.linspace(0, len(rim) - 1, min(len(rim), rim_points)).astype(int)] if len(rim) else rim
+            out.append({"area_mm2": a, "centroid_lps": (area[m] @ cent[m] / a).tolist(), "rim_lps": v[rim].tolist()})
+    return sorted(out, key=lambda d: -d["area_mm2"])
 
 
 def largest_defect_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
