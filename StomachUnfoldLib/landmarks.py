@@ -55,7 +55,20 @@ MAX_WALL_MM = 10.0
 #: How far (mm) back from the far end of the gas the pylorus is looked for past a thin (duodenal) tail.
 PYLORUS_MAX_WALK_MM = 8.0
 #: Weight of the usual cardia direction against the tissue-tube evidence (score per unit of 1 - cos angle).
-CARDIA_PRIOR_WEIGHT = 1.5
+CARDIA_PRIOR_WEIGHT = 2.5
+#: Candidates scoring within this of the best share the vote for the cardia (score units: tissue fraction).
+CARDIA_SCORE_BAND = 0.3
+#: Oesophageal wall density (HU, on the CT smoothed by OESOPHAGUS_SMOOTH_MM): muscle-like, above fat and water,
+#: below unenhanced liver.
+OESOPHAGUS_HU = (15.0, 52.0)
+OESOPHAGUS_SMOOTH_MM = 1.5
+#: Half-angle (degrees) of the cone of probe rays around the usual oesophageal direction.
+CARDIA_CONE_DEG = 20.0
+#: A gas tube thinner than this (equivalent lumen radius, mm) at the far end of the gas is the duodenum (open over its
+#: first centimetres), not the pyloric canal: the pylorus is where the lumen first widens past it.
+PYLORIC_CANAL_MIN_RADIUS_MM = 3.5
+#: Width (mm) of the geodesic distance bins in which the lumen's cross-section is measured from its far end.
+PROFILE_BIN_MM = 2.0
 #: Weight of the distance to the patient's right (mm per mm) added to the geodesic length when picking the far end.
 RIGHTWARD_WEIGHT = 1.0
 
@@ -313,9 +326,12 @@ def _geodesic(region: np.ndarray, spacing, source: int):
 def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.ndarray, d0: np.ndarray):
     """The medial dome point (LPS mm) where a soft-tissue tube leaves superomedially; (point, outward normal, score).
 
-    Each candidate surface point is scored by the share of soft tissue (20 to 150 HU, above water) along a ray leaving it up
-    and medially (the oesophagus), less a penalty for lying far from the usual direction ``d0`` from the dome
-    centre; without a tube the support point toward ``d0`` wins.
+    Each candidate surface point is scored by the share of muscle-density soft tissue (``OESOPHAGUS_HU`` on the CT
+    smoothed by ``OESOPHAGUS_SMOOTH_MM``: the oesophageal wall, not fat, not the denser liver) along a ray leaving
+    it up and medially (the oesophagus), less a penalty for lying far from the usual direction ``d0`` from the dome
+    centre. The point is the candidate nearest the score-weighted centroid of all candidates within
+    ``CARDIA_SCORE_BAND`` of the best (one noisy ray does not decide); without a tube the support point toward
+    ``d0`` wins.
     """
     g = ndimage.gaussian_filter(r_vol.array.astype(np.float32), 2.0 / r_vol.spacing[::-1])
     gv = r_vol.with_array(g)
@@ -324,16 +340,30 @@ def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.
     n_out = -grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
     u = np.array([-0.55, 0.2, 1.0])[None] + 0.6 * n_out
     u /= np.linalg.norm(u, axis=1, keepdims=True)
+    smooth = ct_c.with_array(ndimage.gaussian_filter(ct_c.array.astype(np.float32),
+                                                     OESOPHAGUS_SMOOTH_MM / ct_c.spacing[::-1]))
     ts = np.arange(6.0, 26.0, 2.0)
-    ray = cand[:, None, :] + ts[None, :, None] * u[:, None, :]
-    hu = ct_c.sample(ray.reshape(-1, 3), order=1, cval=-1024.0).reshape(len(cand), len(ts))
-    tissue = ((hu > 20.0) & (hu < 150.0)).mean(1)
+    tissue = np.zeros(len(cand))
+    # the ray and a cone of rays around it (the tube's course varies): the best one counts
+    a = np.cross(u, [0.0, 1.0, 0.0])
+    a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
+    b = np.cross(u, a)
+    tilt = np.tan(np.radians(CARDIA_CONE_DEG))
+    for da, db in [(0.0, 0.0)] + [(np.cos(t), np.sin(t)) for t in np.linspace(0, 2 * np.pi, 6, endpoint=False)]:
+        ud = u + tilt * (da * a + db * b)
+        ud /= np.linalg.norm(ud, axis=1, keepdims=True)
+        ray = cand[:, None, :] + ts[None, :, None] * ud[:, None, :]
+        hu = smooth.sample(ray.reshape(-1, 3), order=1, cval=-1024.0).reshape(len(cand), len(ts))
+        tissue = np.maximum(tissue, ((hu > OESOPHAGUS_HU[0]) & (hu < OESOPHAGUS_HU[1])).mean(1))
     v = cand - centre
     cosang = (v @ d0) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
     support = v @ d0
     level = n_out[:, 1] > 0.6          # a flat air-fluid level faces posterior (supine): no opening there
     score = tissue - CARDIA_PRIOR_WEIGHT * (1.0 - cosang) + 0.01 * (support - support.max()) - 10.0 * level
-    best = int(np.argmax(score))
+    top = np.nonzero(score >= score.max() - CARDIA_SCORE_BAND)[0]
+    w = np.exp((score[top] - score.max()) / CARDIA_SCORE_BAND)
+    c = (cand[top] * w[:, None]).sum(0) / w.sum()
+    best = int(top[np.argmin(np.linalg.norm(cand[top] - c, axis=1))])
     return cand[best], n_out[best], float(tissue[best])
 
 
@@ -358,6 +388,29 @@ def _thin_tube_base(ct_c: Volume, thin: np.ndarray, opened: np.ndarray, centre: 
         if medial and rising and length > best_len:
             best, best_len = base, length
     return best
+
+
+def _pylorus_past_tail(region: np.ndarray, ct_c: Volume, P: np.ndarray, tip: int):
+    """The pylorus (LPS mm) from the far end ``tip`` of a lumen region: (point or None, thin tail length mm).
+
+    The lumen's cross-section is measured in ``PROFILE_BIN_MM`` bins of geodesic distance from the tip (equivalent
+    radius sqrt(area / pi)); an open duodenum is a thin tail there, the pyloric canal wider. The pylorus is the
+    middle of the first bin, followed by a second, whose radius reaches ``PYLORIC_CANAL_MIN_RADIUS_MM``: the
+    canal's end (no tail: a bin from the tip). None when the region stays thinner over its first 40 mm.
+    """
+    dt, _, _ = _geodesic(region, ct_c.spacing, tip)
+    bw = PROFILE_BIN_MM
+    nb = int(round(40.0 / bw))
+    ok = np.isfinite(dt) & (dt < nb * bw)
+    b = (dt[ok] / bw).astype(int)
+    area = np.bincount(b, minlength=nb)[:nb] * float(np.prod(ct_c.spacing)) / bw
+    wide = np.sqrt(area / np.pi) >= PYLORIC_CANAL_MIN_RADIUS_MM
+    first = np.nonzero(wide[:-1] & wide[1:])[0]
+    if not len(first):
+        return None, 40.0
+    i = int(first[0])
+    sel = np.nonzero(ok)[0][b == i]
+    return P[sel].mean(0), float(i * bw)
 
 
 def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
@@ -386,9 +439,11 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
         path.append(int(pred[path[-1]]))
     path = np.array(path)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P[path], axis=0), axis=1))])
-    deep = np.nonzero((e[path] >= PYLORUS_DEPTH_MM) & (arc <= PYLORUS_MAX_WALK_MM))[0]
-    # a thin canal (no voxel that deep near its end at this resolution): PYLORUS_DEPTH_MM back along the path
-    pyl = P[path[deep[0]]] if len(deep) else P[path[int(np.searchsorted(arc, PYLORUS_DEPTH_MM))]]
+    # past a thin (open duodenal) tail to where the lumen widens to the pyloric canal
+    pyl, tail_mm = _pylorus_past_tail(region, ct_c, P, tip)
+    if pyl is None:  # no canal-wide lumen near the far end: the first deep point back along the path
+        deep = np.nonzero((e[path] >= PYLORUS_DEPTH_MM) & (arc <= PYLORUS_MAX_WALK_MM))[0]
+        pyl = P[path[deep[0]]] if len(deep) else P[path[int(np.searchsorted(arc, PYLORUS_DEPTH_MM))]]
     # fundus dome: the widest point near the top; the cardia on its medial side
     near = np.nonzero((dist >= 0) & (dist <= 55.0))[0]
     radius = float(e[near].max())
@@ -400,7 +455,7 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
     opened = distance_mm(~(edt >= r_open), ct_c.spacing) <= r_open + 0.5 * vox
     rel = np.linalg.norm(P[near] - centre, axis=1)
     band = near[(P[near, 2] >= centre[2] - 0.35 * radius) & (P[near, 2] <= centre[2] + 0.8 * radius)
-                & (rel <= 1.4 * radius) & (e[near] <= 1.05 * vox + 1e-6)
+                & (rel <= 1.7 * radius) & (e[near] <= 1.05 * vox + 1e-6)
                 & ((P[near] - centre) @ d0 > 0.0) & opened[kk[near], jj[near], ii[near]]]
     if not len(band):
         band = near
