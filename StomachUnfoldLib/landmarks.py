@@ -55,7 +55,7 @@ MAX_WALL_MM = 10.0
 #: How far (mm) back from the far end of the gas the pylorus is looked for past a thin (duodenal) tail.
 PYLORUS_MAX_WALK_MM = 8.0
 #: Weight of the usual cardia direction against the tissue-tube evidence (score per unit of 1 - cos angle).
-CARDIA_PRIOR_WEIGHT = 2.5
+CARDIA_PRIOR_WEIGHT = 2.0
 #: Candidates scoring within this of the best share the vote for the cardia (score units: tissue fraction).
 CARDIA_SCORE_BAND = 0.3
 #: Oesophageal wall density (HU, on the CT smoothed by OESOPHAGUS_SMOOTH_MM): muscle-like, above fat and water,
@@ -64,6 +64,13 @@ OESOPHAGUS_HU = (15.0, 52.0)
 OESOPHAGUS_SMOOTH_MM = 1.5
 #: Half-angle (degrees) of the cone of probe rays around the usual oesophageal direction.
 CARDIA_CONE_DEG = 20.0
+#: A candidate this far (mm) from the chosen cardia counts as a rival site when judging how sure the choice is.
+CARDIA_RIVAL_MM = 12.0
+#: Below this share of tissue along the probe and this lead over a rival site, the tube evidence is too weak to trust.
+CARDIA_MIN_TISSUE = 0.65
+CARDIA_MIN_MARGIN = 0.1
+#: A thin tail longer than this (mm) before the canal-wide lumen: the far end is not a pylorus we recognise.
+PYLORUS_MAX_TAIL_MM = 30.0
 #: A gas tube thinner than this (equivalent lumen radius, mm) at the far end of the gas is the duodenum (open over its
 #: first centimetres), not the pyloric canal: the pylorus is where the lumen first widens past it.
 PYLORIC_CANAL_MIN_RADIUS_MM = 3.5
@@ -364,7 +371,10 @@ def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.
     w = np.exp((score[top] - score.max()) / CARDIA_SCORE_BAND)
     c = (cand[top] * w[:, None]).sum(0) / w.sum()
     best = int(top[np.argmin(np.linalg.norm(cand[top] - c, axis=1))])
-    return cand[best], n_out[best], float(tissue[best])
+    # ambiguity: how much better the vote's winner scores than the best candidate elsewhere on the dome
+    far = np.linalg.norm(cand - cand[best], axis=1) > CARDIA_RIVAL_MM
+    margin = float(score[best] - score[far].max()) if far.any() else 1.0
+    return cand[best], n_out[best], float(tissue[best]), margin
 
 
 def _thin_tube_base(ct_c: Volume, thin: np.ndarray, opened: np.ndarray, centre: np.ndarray, radius: float):
@@ -460,20 +470,31 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
     if not len(band):
         band = near
     r_vol = ct_c.with_array(region.astype(np.uint8))
-    s, n_out, tube = _oesophagus_probe(ct_c, r_vol, P[band], centre, d0)
+    s, n_out, tube, margin = _oesophagus_probe(ct_c, r_vol, P[band], centre, d0)
     gas_tube = _thin_tube_base(ct_c, region & ~opened, opened, centre, radius)
     if gas_tube is not None:
         s, n_out = gas_tube, _unit(gas_tube - centre)
     cardia = _inside_along(r_vol, s, -n_out, CARDIA_DEPTH_MM - 0.5 * vox)
     length = float(dist[tip])
     # the cardia is surest where an open oesophagus shows as a thin gas tube, next where a tissue tube leaves
-    c_conf, p_conf = (0.9 if gas_tube is not None else 0.6 + 0.15 * tube), 0.8
+    # clearly (much of the probe in tissue, or no rival site on the dome scoring as well); weak and rivalled: unsure
+    weak = tube < CARDIA_MIN_TISSUE and margin < CARDIA_MIN_MARGIN
+    c_conf = (0.9 if gas_tube is not None else 0.4 + 0.1 * tube if weak
+              else 0.6 + 0.15 * tube + 0.5 * float(np.clip(margin, 0.0, 0.3)))
+    p_conf = 0.8 if tail_mm <= PYLORUS_MAX_TAIL_MM else 0.4
     ev = [f"{'gas' if gas else 'label'} shape: fundus top RAS {np.round(lps_to_ras(P[top]), 1).tolist()}, dome "
           f"radius {radius:.0f} mm, far end {length:.0f} mm along the {'gas' if gas else 'label'}",
           "cardia: " + ("the base of a thin gas tube leaving the dome superomedially (open oesophagus)"
                         if gas_tube is not None else
                         f"the medial dome where soft tissue leaves superomedially ({100 * tube:.0f} % tissue "
-                        "along the probe)")]
+                        f"along the probe, {margin:+.2f} ahead of the best rival site)"),
+          "pylorus: " + (f"where the lumen widens to the pyloric canal, {tail_mm:.0f} mm from the far end"
+                         + (" (past a thin duodenal gas tail)" if tail_mm > PROFILE_BIN_MM else "")
+                         if tail_mm <= PYLORUS_MAX_TAIL_MM else
+                         f"no canal-wide lumen within {tail_mm:.0f} mm of the far end: unsure")]
+    if weak and gas_tube is None:
+        ev.append("the oesophageal tissue tube is faint and another site on the dome scores as well: unsure of the "
+                  "cardia")
     if length < 80.0:
         c_conf, p_conf = c_conf * 0.5, p_conf * 0.5
         ev.append(f"the region is only {length:.0f} mm long (a stomach is over 80 mm): unsure")
@@ -484,7 +505,8 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
         c_conf *= 0.5
         ev.append(f"no fundus dome (widest {radius:.0f} mm): unsure of the cardia")
     return {"cardia": cardia, "pylorus": pyl, "cardia_confidence": c_conf, "pylorus_confidence": p_conf,
-            "evidence": ev}
+            "evidence": ev, "details": {"cardia_tissue": tube, "cardia_margin": margin, "gas_tube": gas_tube is not None,
+                                        "tail_mm": tail_mm, "radius_mm": radius, "length_mm": length}}
 
 
 # ---------------------------------------------------------------------------------------------- from the gas
