@@ -10,9 +10,12 @@ confidence in [0, 1] for each and what they were found from (the labels used, or
   label as the front end snaps points.
 * Without one (a gas-distended CT): the stomach gas is the large gas region inside the body that is neither
   outside air (it touches the volume's sides), lung (it reaches the top face, is lung-dense or too large) nor
-  bowel (lower, smaller, to the right); the pylorus is the far end of the gas from the fundus top (the first
-  point at least ``PYLORUS_DEPTH_MM`` from the gas's edge, so a thin duodenal gas tube is passed over), the
-  cardia the medial side of the fundus dome, ``CARDIA_DEPTH_MM`` inside the gas.
+  bowel (lower, smaller, to the right); the pylorus is at the far end of the gas from the fundus top, where the
+  lumen first widens to the pyloric canal (``PYLORIC_CANAL_MIN_RADIUS_MM``; a thin open duodenum before it is
+  passed over); the cardia on the medial side of the fundus dome where the oesophagus leaves (an open gas tube, else
+  the site whose probe rays meet the most oesophageal wall density), ``CARDIA_DEPTH_MM`` inside the gas. The
+  cardia is unsure (confidence below ``CONFIDENCE_THRESHOLD``) when that tube is faint or a rival site on the dome
+  scores as well; the pylorus when no canal-wide lumen comes within ``PYLORUS_MAX_TAIL_MM`` of the far end.
 
 Coordinates are LPS mm; messages name points in RAS (as Slicer shows them).
 """
@@ -64,11 +67,14 @@ OESOPHAGUS_HU = (15.0, 52.0)
 OESOPHAGUS_SMOOTH_MM = 1.5
 #: Half-angle (degrees) of the cone of probe rays around the usual oesophageal direction.
 CARDIA_CONE_DEG = 20.0
+#: An open oesophageal lumen on a probe ray: darker than fat (HU, smoothed CT) continuously from the stomach gas
+#: for at least OPEN_LUMEN_MIN_MM (a wall and fat cross over within a few mm elsewhere).
+OPEN_LUMEN_HU = -110.0
+OPEN_LUMEN_MIN_MM = 8.0
 #: A candidate this far (mm) from the chosen cardia counts as a rival site when judging how sure the choice is.
 CARDIA_RIVAL_MM = 12.0
-#: Below this share of tissue along the probe and this lead over a rival site, the tube evidence is too weak to trust.
-CARDIA_MIN_TISSUE = 0.65
-CARDIA_MIN_MARGIN = 0.1
+#: The cardia's support: the share of tissue along its probe plus this times its score's lead over the best rival site.
+CARDIA_MARGIN_WEIGHT = 2.0
 #: A thin tail longer than this (mm) before the canal-wide lumen: the far end is not a pylorus we recognise.
 PYLORUS_MAX_TAIL_MM = 30.0
 #: A gas tube thinner than this (equivalent lumen radius, mm) at the far end of the gas is the duodenum (open over its
@@ -331,14 +337,16 @@ def _geodesic(region: np.ndarray, spacing, source: int):
 
 
 def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.ndarray, d0: np.ndarray):
-    """The medial dome point (LPS mm) where a soft-tissue tube leaves superomedially; (point, outward normal, score).
+    """The medial dome point (LPS mm) where the oesophagus leaves superomedially: (point, outward normal, tissue
+    share along its probe, lead of its score over the best candidate more than ``CARDIA_RIVAL_MM`` away).
 
-    Each candidate surface point is scored by the share of muscle-density soft tissue (``OESOPHAGUS_HU`` on the CT
-    smoothed by ``OESOPHAGUS_SMOOTH_MM``: the oesophageal wall, not fat, not the denser liver) along a ray leaving
-    it up and medially (the oesophagus), less a penalty for lying far from the usual direction ``d0`` from the dome
-    centre. The point is the candidate nearest the score-weighted centroid of all candidates within
-    ``CARDIA_SCORE_BAND`` of the best (one noisy ray does not decide); without a tube the support point toward
-    ``d0`` wins.
+    Each candidate surface point is scored by the share of its probe (6-26 mm out along a ray leaving it up and
+    medially, the best of a ``CARDIA_CONE_DEG`` cone of rays) that is oesophagus: muscle-density soft tissue
+    (``OESOPHAGUS_HU`` on the CT smoothed by ``OESOPHAGUS_SMOOTH_MM``: the wall, not fat, not the denser liver) or
+    an open lumen (darker than fat continuously from the gas for ``OPEN_LUMEN_MIN_MM``), less a penalty for lying
+    far from the usual direction ``d0`` from the dome centre. The point is the candidate nearest the score-weighted
+    centroid of all candidates within ``CARDIA_SCORE_BAND`` of the best (one noisy ray does not decide); without a
+    tube the support point toward ``d0`` wins.
     """
     g = ndimage.gaussian_filter(r_vol.array.astype(np.float32), 2.0 / r_vol.spacing[::-1])
     gv = r_vol.with_array(g)
@@ -349,7 +357,9 @@ def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     smooth = ct_c.with_array(ndimage.gaussian_filter(ct_c.array.astype(np.float32),
                                                      OESOPHAGUS_SMOOTH_MM / ct_c.spacing[::-1]))
-    ts = np.arange(6.0, 26.0, 2.0)
+    step = 2.0
+    ts = np.arange(0.0, 26.0, step)
+    probe = ts >= 6.0
     tissue = np.zeros(len(cand))
     # the ray and a cone of rays around it (the tube's course varies): the best one counts
     a = np.cross(u, [0.0, 1.0, 0.0])
@@ -361,7 +371,11 @@ def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.
         ud /= np.linalg.norm(ud, axis=1, keepdims=True)
         ray = cand[:, None, :] + ts[None, :, None] * ud[:, None, :]
         hu = smooth.sample(ray.reshape(-1, 3), order=1, cval=-1024.0).reshape(len(cand), len(ts))
-        tissue = np.maximum(tissue, ((hu > OESOPHAGUS_HU[0]) & (hu < OESOPHAGUS_HU[1])).mean(1))
+        # an open oesophagus: the ray stays darker than fat from the gas on, past where a wall would be
+        lumen = np.cumprod(hu < OPEN_LUMEN_HU, axis=1).astype(bool)
+        lumen &= (lumen.sum(1) * step >= OPEN_LUMEN_MIN_MM)[:, None]
+        tube = ((hu > OESOPHAGUS_HU[0]) & (hu < OESOPHAGUS_HU[1])) | lumen
+        tissue = np.maximum(tissue, tube[:, probe].mean(1))
     v = cand - centre
     cosang = (v @ d0) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
     support = v @ d0
@@ -477,10 +491,11 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
     cardia = _inside_along(r_vol, s, -n_out, CARDIA_DEPTH_MM - 0.5 * vox)
     length = float(dist[tip])
     # the cardia is surest where an open oesophagus shows as a thin gas tube, next where a tissue tube leaves
-    # clearly (much of the probe in tissue, or no rival site on the dome scoring as well); weak and rivalled: unsure
-    weak = tube < CARDIA_MIN_TISSUE and margin < CARDIA_MIN_MARGIN
-    c_conf = (0.9 if gas_tube is not None else 0.4 + 0.1 * tube if weak
-              else 0.6 + 0.15 * tube + 0.5 * float(np.clip(margin, 0.0, 0.3)))
+    # clearly: much of the probe in tissue and no rival site on the dome scoring as well (a faint or rivalled tube:
+    # unsure, below CONFIDENCE_THRESHOLD when tissue share + 2 x lead < about 0.45)
+    support = tube + CARDIA_MARGIN_WEIGHT * margin
+    c_conf = 0.9 if gas_tube is not None else 0.3 + 0.45 * float(np.clip(support, 0.0, 1.2))
+    weak = gas_tube is None and c_conf < CONFIDENCE_THRESHOLD
     p_conf = 0.8 if tail_mm <= PYLORUS_MAX_TAIL_MM else 0.4
     ev = [f"{'gas' if gas else 'label'} shape: fundus top RAS {np.round(lps_to_ras(P[top]), 1).tolist()}, dome "
           f"radius {radius:.0f} mm, far end {length:.0f} mm along the {'gas' if gas else 'label'}",
@@ -492,7 +507,7 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
                          + (" (past a thin duodenal gas tail)" if tail_mm > PROFILE_BIN_MM else "")
                          if tail_mm <= PYLORUS_MAX_TAIL_MM else
                          f"no canal-wide lumen within {tail_mm:.0f} mm of the far end: unsure")]
-    if weak and gas_tube is None:
+    if weak:
         ev.append("the oesophageal tissue tube is faint and another site on the dome scores as well: unsure of the "
                   "cardia")
     if length < 80.0:
