@@ -504,7 +504,7 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
                         f"the medial dome where soft tissue leaves superomedially ({100 * tube:.0f} % tissue "
                         f"along the probe, {margin:+.2f} ahead of the best rival site)"),
           "pylorus: " + (f"where the lumen widens to the pyloric canal, {tail_mm:.0f} mm from the far end"
-                         + (" (past a thin duodenal gas tail)" if tail_mm > PROFILE_BIN_MM else "")
+                         + (" (past a thin duodenal gas tail)" if tail_mm > 2 * PROFILE_BIN_MM else "")
                          if tail_mm <= PYLORUS_MAX_TAIL_MM else
                          f"no canal-wide lumen within {tail_mm:.0f} mm of the far end: unsure")]
     if weak:
