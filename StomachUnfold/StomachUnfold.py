@@ -322,14 +322,21 @@ class StomachUnfoldLogic(ScriptedLoadableModuleLogic):
                 if not slicer.vtkSlicerSegmentationsModuleLogic.ExportVisibleSegmentsToLabelmapNode(maskNode, tmp):
                     raise ValueError(_("could not export {name} to a label map").format(name=maskNode.GetName()))
                 seg = maskNode.GetSegmentation()
+                display = maskNode.GetDisplayNode()
+                # the export numbers the visible segments 1, 2, ... in the segmentation's order
+                visible = [seg.GetNthSegmentID(i) for i in range(seg.GetNumberOfSegments())
+                           if display is None or display.GetSegmentVisibility(seg.GetNthSegmentID(i))]
                 names = {}
-                for i in range(seg.GetNumberOfSegments()):
-                    segment = seg.GetNthSegment(i)
-                    tag = vtk.mutable("") if hasattr(vtk, "mutable") else None
+                for value, segmentId in enumerate(visible, start=1):
+                    segment = seg.GetSegment(segmentId)
                     term = ""
-                    if tag is not None and segment.GetTag("TerminologyEntry", tag):
-                        term = str(tag)
-                    names[i + 1] = f"{segment.GetName()} {term}".strip()
+                    if hasattr(segment, "GetTerminology"):
+                        term = segment.GetTerminology() or ""
+                    else:
+                        tag = vtk.mutable("") if hasattr(vtk, "mutable") else None
+                        if tag is not None and segment.GetTag("TerminologyEntry", tag):
+                            term = str(tag)
+                    names[value] = f"{segment.GetName()} {term}".strip()
                 return labels_on_grid(self.volumeFromNode(tmp), referenceVolume), names
             finally:
                 added = [scene.GetNthNode(i) for i in range(scene.GetNumberOfNodes())]

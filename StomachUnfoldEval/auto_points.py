@@ -16,10 +16,15 @@ from StomachUnfoldLib.landmarks import CLASS_MAPS, find_points
 
 from .random_stomach import LABELS, random_stomach
 
-__all__ = ["totalseg_labels", "point_errors", "found_versus_truth", "TOLERANCE_MM"]
+__all__ = ["totalseg_labels", "point_errors", "found_versus_truth", "TOLERANCE_MM", "AUTO_TUNE_SEEDS",
+           "AUTO_FRESH_SEEDS"]
 
 #: A found point within this distance (mm) of the true one counts as found.
 TOLERANCE_MM = 10.0
+#: Seeds the gas path was tuned on (besides bench.TUNE_SEEDS, 0-29): looked at while the method was shaped.
+AUTO_TUNE_SEEDS = tuple(range(100, 160)) + tuple(range(200, 230))
+#: Seeds never looked at while the gas path was shaped (drawn once the method was final): the fresh check.
+AUTO_FRESH_SEEDS = tuple(range(4000, 4030))
 
 
 def totalseg_labels(vol, labels: np.ndarray, truth: dict, convention: str = "total") -> np.ndarray:
@@ -79,8 +84,9 @@ def found_versus_truth(ct, truth: dict, labels=None):
 
 
 def point_benchmark(out_dir: str, quick: bool = False, size: str = "tiny", draw=None) -> dict:
-    """Bench part ``autopoints``: the found points against the truth on the tuning seeds (0-29) and the held-out seeds
-    (1000-1029), from the gas and from both TotalSegmentator numberings; writes autopoints.json and autopoints.md.
+    """Bench part ``autopoints``: the found points against the truth on the tuning seeds (0-29), the held-out seeds
+    (1000-1029) and the fresh seeds (``AUTO_FRESH_SEEDS``; none when ``quick``), from the gas and from both
+    TotalSegmentator numberings; writes autopoints.json and autopoints.md.
 
     ``draw(seed)``: the (volume, truth, labels) of a seed (default: ``random_stomach(seed, size, labels=True)``)."""
     import json
@@ -89,7 +95,8 @@ def point_benchmark(out_dir: str, quick: bool = False, size: str = "tiny", draw=
     from .bench import HELD_OUT_SEEDS, TUNE_SEEDS
 
     groups = (("tune", TUNE_SEEDS[:3] if quick else TUNE_SEEDS),
-              ("held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS))
+              ("held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS),
+              ("fresh", () if quick else AUTO_FRESH_SEEDS))
     rows = []
     for group, seeds in groups:
         for seed in seeds:
@@ -103,9 +110,11 @@ def point_benchmark(out_dir: str, quick: bool = False, size: str = "tiny", draw=
                     r = {"seed": int(seed), "source": source, "ok": False, "error": f"{type(e).__name__}: {e}"}
                 rows.append(dict(r, group=group))
     summary = {}
-    for group, _ in groups:
+    for group, seeds in groups:
         for source in ("gas", "total", "total_v1"):
             rs = [r for r in rows if r["group"] == group and r["source"] == source]
+            if not seeds:
+                continue
             ok = [r for r in rs if r["ok"]]
             summary[f"{group}/{source}"] = {
                 "volumes": len(rs), "failed": len(rs) - len(ok),
@@ -115,23 +124,28 @@ def point_benchmark(out_dir: str, quick: bool = False, size: str = "tiny", draw=
                 "cardia_error_median_mm": float(np.median([r["cardia_error_mm"] for r in ok])) if ok else None,
                 "pylorus_error_median_mm": float(np.median([r["pylorus_error_mm"] for r in ok])) if ok else None,
                 "refused": sum(not r["confident"] for r in ok),
+                "refused_but_within": sum(not r["confident"] and r["within_tolerance"] for r in ok),
                 "confident_but_off": sum(r["confident"] and not r["within_tolerance"] for r in ok),
                 "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None}
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "autopoints.json"), "w") as f:
-        json.dump({"size": size, "tolerance_mm": TOLERANCE_MM, "summary": summary, "rows": rows}, f, indent=1)
+        json.dump({"size": size, "tolerance_mm": TOLERANCE_MM, "tuned_on": "0-29, 100-159, 200-229",
+                   "summary": summary, "rows": rows}, f, indent=1)
     L = [f"# Zero clicks: points found against the truth (random stomachs, size {size})\n",
          f"Both points within {TOLERANCE_MM:g} mm of the true cardia and pylorus; 'refused': below the confidence "
          "threshold (the command line refuses, the module asks); 'confident but off': accepted yet over the "
-         "tolerance. Seeds 1000-1029 are held out (never tuned on).\n",
+         "tolerance; 'refused but within': refused although both points were within the tolerance. 'tune': seeds "
+         "0-29, which (with seeds 100-159 and 200-229) the gas path was tuned on; 'held-out': seeds 1000-1029, "
+         "'fresh': seeds 4000-4029, both run once the method was final.\n",
          "| seeds / source | both within | cardia within | pylorus within | median error cardia / pylorus mm | "
-         "refused | confident but off | failed | s median |", "|---|---|---|---|---|---|---|---|---|"]
+         "refused | refused but within | confident but off | failed | s median |",
+         "|---|---|---|---|---|---|---|---|---|---|"]
     for key, v in summary.items():
         def f1(x):
             return "" if x is None else f"{x:.1f}"
         L.append(f"| {key} | {v['both_within']}/{v['volumes']} | {v['cardia_within']} | {v['pylorus_within']} | "
                  f"{f1(v['cardia_error_median_mm'])} / {f1(v['pylorus_error_median_mm'])} | {v['refused']} | "
-                 f"{v['confident_but_off']} | {v['failed']} | {f1(v['seconds_median'])} |")
+                 f"{v['refused_but_within']} | {v['confident_but_off']} | {v['failed']} | {f1(v['seconds_median'])} |")
     with open(os.path.join(out_dir, "autopoints.md"), "w") as f:
         f.write("\n".join(L) + "\n")
     return summary

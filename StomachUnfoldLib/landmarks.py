@@ -10,9 +10,12 @@ confidence in [0, 1] for each and what they were found from (the labels used, or
   label as the front end snaps points.
 * Without one (a gas-distended CT): the stomach gas is the large gas region inside the body that is neither
   outside air (it touches the volume's sides), lung (it reaches the top face, is lung-dense or too large) nor
-  bowel (lower, smaller, to the right); the pylorus is the far end of the gas from the fundus top (the first
-  point at least ``PYLORUS_DEPTH_MM`` from the gas's edge, so a thin duodenal gas tube is passed over), the
-  cardia the medial side of the fundus dome, ``CARDIA_DEPTH_MM`` inside the gas.
+  bowel (lower, smaller, to the right); the pylorus is at the far end of the gas from the fundus top, where the
+  lumen first widens to the pyloric canal (``PYLORIC_CANAL_MIN_RADIUS_MM``; a thin open duodenum before it is
+  passed over); the cardia on the medial side of the fundus dome where the oesophagus leaves (an open gas tube, else
+  the site whose probe rays meet the most oesophageal wall density), ``CARDIA_DEPTH_MM`` inside the gas. The
+  cardia is unsure (confidence below ``CONFIDENCE_THRESHOLD``) when that tube is faint or a rival site on the dome
+  scores as well; the pylorus when no canal-wide lumen comes within ``PYLORUS_MAX_TAIL_MM`` of the far end.
 
 Coordinates are LPS mm; messages name points in RAS (as Slicer shows them).
 """
@@ -55,7 +58,30 @@ MAX_WALL_MM = 10.0
 #: How far (mm) back from the far end of the gas the pylorus is looked for past a thin (duodenal) tail.
 PYLORUS_MAX_WALK_MM = 8.0
 #: Weight of the usual cardia direction against the tissue-tube evidence (score per unit of 1 - cos angle).
-CARDIA_PRIOR_WEIGHT = 1.5
+CARDIA_PRIOR_WEIGHT = 2.0
+#: Candidates scoring within this of the best share the vote for the cardia (score units: tissue fraction).
+CARDIA_SCORE_BAND = 0.3
+#: Oesophageal wall density (HU, on the CT smoothed by OESOPHAGUS_SMOOTH_MM): muscle-like, above fat and water,
+#: below unenhanced liver.
+OESOPHAGUS_HU = (15.0, 52.0)
+OESOPHAGUS_SMOOTH_MM = 1.5
+#: Half-angle (degrees) of the cone of probe rays around the usual oesophageal direction.
+CARDIA_CONE_DEG = 20.0
+#: An open oesophageal lumen on a probe ray: darker than fat (HU, smoothed CT) continuously from the stomach gas
+#: for at least OPEN_LUMEN_MIN_MM (a wall and fat cross over within a few mm elsewhere).
+OPEN_LUMEN_HU = -110.0
+OPEN_LUMEN_MIN_MM = 8.0
+#: A candidate this far (mm) from the chosen cardia counts as a rival site when judging how sure the choice is.
+CARDIA_RIVAL_MM = 12.0
+#: The cardia's support: the share of tissue along its probe plus this times its score's lead over the best rival site.
+CARDIA_MARGIN_WEIGHT = 2.0
+#: A thin tail longer than this (mm) before the canal-wide lumen: the far end is not a pylorus we recognise.
+PYLORUS_MAX_TAIL_MM = 30.0
+#: A gas tube thinner than this (equivalent lumen radius, mm) at the far end of the gas is the duodenum (open over its
+#: first centimetres), not the pyloric canal: the pylorus is where the lumen first widens past it.
+PYLORIC_CANAL_MIN_RADIUS_MM = 3.5
+#: Width (mm) of the geodesic distance bins in which the lumen's cross-section is measured from its far end.
+PROFILE_BIN_MM = 2.0
 #: Weight of the distance to the patient's right (mm per mm) added to the geodesic length when picking the far end.
 RIGHTWARD_WEIGHT = 1.0
 
@@ -311,11 +337,16 @@ def _geodesic(region: np.ndarray, spacing, source: int):
 
 
 def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.ndarray, d0: np.ndarray):
-    """The medial dome point (LPS mm) where a soft-tissue tube leaves superomedially; (point, outward normal, score).
+    """The medial dome point (LPS mm) where the oesophagus leaves superomedially: (point, outward normal, tissue
+    share along its probe, lead of its score over the best candidate more than ``CARDIA_RIVAL_MM`` away).
 
-    Each candidate surface point is scored by the share of soft tissue (20 to 150 HU, above water) along a ray leaving it up
-    and medially (the oesophagus), less a penalty for lying far from the usual direction ``d0`` from the dome
-    centre; without a tube the support point toward ``d0`` wins.
+    Each candidate surface point is scored by the share of its probe (6-26 mm out along a ray leaving it up and
+    medially, the best of a ``CARDIA_CONE_DEG`` cone of rays) that is oesophagus: muscle-density soft tissue
+    (``OESOPHAGUS_HU`` on the CT smoothed by ``OESOPHAGUS_SMOOTH_MM``: the wall, not fat, not the denser liver) or
+    an open lumen (darker than fat continuously from the gas for ``OPEN_LUMEN_MIN_MM``), less a penalty for lying
+    far from the usual direction ``d0`` from the dome centre. The point is the candidate nearest the score-weighted
+    centroid of all candidates within ``CARDIA_SCORE_BAND`` of the best (one noisy ray does not decide); without a
+    tube the support point toward ``d0`` wins.
     """
     g = ndimage.gaussian_filter(r_vol.array.astype(np.float32), 2.0 / r_vol.spacing[::-1])
     gv = r_vol.with_array(g)
@@ -324,17 +355,40 @@ def _oesophagus_probe(ct_c: Volume, r_vol: Volume, cand: np.ndarray, centre: np.
     n_out = -grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
     u = np.array([-0.55, 0.2, 1.0])[None] + 0.6 * n_out
     u /= np.linalg.norm(u, axis=1, keepdims=True)
-    ts = np.arange(6.0, 26.0, 2.0)
-    ray = cand[:, None, :] + ts[None, :, None] * u[:, None, :]
-    hu = ct_c.sample(ray.reshape(-1, 3), order=1, cval=-1024.0).reshape(len(cand), len(ts))
-    tissue = ((hu > 20.0) & (hu < 150.0)).mean(1)
+    smooth = ct_c.with_array(ndimage.gaussian_filter(ct_c.array.astype(np.float32),
+                                                     OESOPHAGUS_SMOOTH_MM / ct_c.spacing[::-1]))
+    step = 2.0
+    ts = np.arange(0.0, 26.0, step)
+    probe = ts >= 6.0
+    tissue = np.zeros(len(cand))
+    # the ray and a cone of rays around it (the tube's course varies): the best one counts
+    a = np.cross(u, [0.0, 1.0, 0.0])
+    a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-9)
+    b = np.cross(u, a)
+    tilt = np.tan(np.radians(CARDIA_CONE_DEG))
+    for da, db in [(0.0, 0.0)] + [(np.cos(t), np.sin(t)) for t in np.linspace(0, 2 * np.pi, 6, endpoint=False)]:
+        ud = u + tilt * (da * a + db * b)
+        ud /= np.linalg.norm(ud, axis=1, keepdims=True)
+        ray = cand[:, None, :] + ts[None, :, None] * ud[:, None, :]
+        hu = smooth.sample(ray.reshape(-1, 3), order=1, cval=-1024.0).reshape(len(cand), len(ts))
+        # an open oesophagus: the ray stays darker than fat from the gas on, past where a wall would be
+        lumen = np.cumprod(hu < OPEN_LUMEN_HU, axis=1).astype(bool)
+        lumen &= (lumen.sum(1) * step >= OPEN_LUMEN_MIN_MM)[:, None]
+        tube = ((hu > OESOPHAGUS_HU[0]) & (hu < OESOPHAGUS_HU[1])) | lumen
+        tissue = np.maximum(tissue, tube[:, probe].mean(1))
     v = cand - centre
     cosang = (v @ d0) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
     support = v @ d0
     level = n_out[:, 1] > 0.6          # a flat air-fluid level faces posterior (supine): no opening there
     score = tissue - CARDIA_PRIOR_WEIGHT * (1.0 - cosang) + 0.01 * (support - support.max()) - 10.0 * level
-    best = int(np.argmax(score))
-    return cand[best], n_out[best], float(tissue[best])
+    top = np.nonzero(score >= score.max() - CARDIA_SCORE_BAND)[0]
+    w = np.exp((score[top] - score.max()) / CARDIA_SCORE_BAND)
+    c = (cand[top] * w[:, None]).sum(0) / w.sum()
+    best = int(top[np.argmin(np.linalg.norm(cand[top] - c, axis=1))])
+    # ambiguity: how much better the vote's winner scores than the best candidate elsewhere on the dome
+    far = np.linalg.norm(cand - cand[best], axis=1) > CARDIA_RIVAL_MM
+    margin = float(score[best] - score[far].max()) if far.any() else 1.0
+    return cand[best], n_out[best], float(tissue[best]), margin
 
 
 def _thin_tube_base(ct_c: Volume, thin: np.ndarray, opened: np.ndarray, centre: np.ndarray, radius: float):
@@ -358,6 +412,29 @@ def _thin_tube_base(ct_c: Volume, thin: np.ndarray, opened: np.ndarray, centre: 
         if medial and rising and length > best_len:
             best, best_len = base, length
     return best
+
+
+def _pylorus_past_tail(region: np.ndarray, ct_c: Volume, P: np.ndarray, tip: int):
+    """The pylorus (LPS mm) from the far end ``tip`` of a lumen region: (point or None, thin tail length mm).
+
+    The lumen's cross-section is measured in ``PROFILE_BIN_MM`` bins of geodesic distance from the tip (equivalent
+    radius sqrt(area / pi)); an open duodenum is a thin tail there, the pyloric canal wider. The pylorus is the
+    middle of the first bin, followed by a second, whose radius reaches ``PYLORIC_CANAL_MIN_RADIUS_MM``: the
+    canal's end (no tail: a bin from the tip). None when the region stays thinner over its first 40 mm.
+    """
+    dt, _, _ = _geodesic(region, ct_c.spacing, tip)
+    bw = PROFILE_BIN_MM
+    nb = int(round(40.0 / bw))
+    ok = np.isfinite(dt) & (dt < nb * bw)
+    b = (dt[ok] / bw).astype(int)
+    area = np.bincount(b, minlength=nb)[:nb] * float(np.prod(ct_c.spacing)) / bw
+    wide = np.sqrt(area / np.pi) >= PYLORIC_CANAL_MIN_RADIUS_MM
+    first = np.nonzero(wide[:-1] & wide[1:])[0]
+    if not len(first):
+        return None, 40.0
+    i = int(first[0])
+    sel = np.nonzero(ok)[0][b == i]
+    return P[sel].mean(0), float(i * bw)
 
 
 def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
@@ -386,9 +463,11 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
         path.append(int(pred[path[-1]]))
     path = np.array(path)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P[path], axis=0), axis=1))])
-    deep = np.nonzero((e[path] >= PYLORUS_DEPTH_MM) & (arc <= PYLORUS_MAX_WALK_MM))[0]
-    # a thin canal (no voxel that deep near its end at this resolution): PYLORUS_DEPTH_MM back along the path
-    pyl = P[path[deep[0]]] if len(deep) else P[path[int(np.searchsorted(arc, PYLORUS_DEPTH_MM))]]
+    # past a thin (open duodenal) tail to where the lumen widens to the pyloric canal
+    pyl, tail_mm = _pylorus_past_tail(region, ct_c, P, tip)
+    if pyl is None:  # no canal-wide lumen near the far end: the first deep point back along the path
+        deep = np.nonzero((e[path] >= PYLORUS_DEPTH_MM) & (arc <= PYLORUS_MAX_WALK_MM))[0]
+        pyl = P[path[deep[0]]] if len(deep) else P[path[int(np.searchsorted(arc, PYLORUS_DEPTH_MM))]]
     # fundus dome: the widest point near the top; the cardia on its medial side
     near = np.nonzero((dist >= 0) & (dist <= 55.0))[0]
     radius = float(e[near].max())
@@ -400,25 +479,37 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
     opened = distance_mm(~(edt >= r_open), ct_c.spacing) <= r_open + 0.5 * vox
     rel = np.linalg.norm(P[near] - centre, axis=1)
     band = near[(P[near, 2] >= centre[2] - 0.35 * radius) & (P[near, 2] <= centre[2] + 0.8 * radius)
-                & (rel <= 1.4 * radius) & (e[near] <= 1.05 * vox + 1e-6)
+                & (rel <= 1.7 * radius) & (e[near] <= 1.05 * vox + 1e-6)
                 & ((P[near] - centre) @ d0 > 0.0) & opened[kk[near], jj[near], ii[near]]]
     if not len(band):
         band = near
     r_vol = ct_c.with_array(region.astype(np.uint8))
-    s, n_out, tube = _oesophagus_probe(ct_c, r_vol, P[band], centre, d0)
+    s, n_out, tube, margin = _oesophagus_probe(ct_c, r_vol, P[band], centre, d0)
     gas_tube = _thin_tube_base(ct_c, region & ~opened, opened, centre, radius)
     if gas_tube is not None:
         s, n_out = gas_tube, _unit(gas_tube - centre)
     cardia = _inside_along(r_vol, s, -n_out, CARDIA_DEPTH_MM - 0.5 * vox)
     length = float(dist[tip])
     # the cardia is surest where an open oesophagus shows as a thin gas tube, next where a tissue tube leaves
-    c_conf, p_conf = (0.9 if gas_tube is not None else 0.6 + 0.15 * tube), 0.8
+    # clearly: much of the probe in tissue and no rival site on the dome scoring as well (a faint or rivalled tube:
+    # unsure, below CONFIDENCE_THRESHOLD when tissue share + 2 x lead < about 0.45)
+    support = tube + CARDIA_MARGIN_WEIGHT * margin
+    c_conf = 0.9 if gas_tube is not None else 0.3 + 0.45 * float(np.clip(support, 0.0, 1.2))
+    weak = gas_tube is None and c_conf < CONFIDENCE_THRESHOLD
+    p_conf = 0.8 if tail_mm <= PYLORUS_MAX_TAIL_MM else 0.4
     ev = [f"{'gas' if gas else 'label'} shape: fundus top RAS {np.round(lps_to_ras(P[top]), 1).tolist()}, dome "
           f"radius {radius:.0f} mm, far end {length:.0f} mm along the {'gas' if gas else 'label'}",
           "cardia: " + ("the base of a thin gas tube leaving the dome superomedially (open oesophagus)"
                         if gas_tube is not None else
                         f"the medial dome where soft tissue leaves superomedially ({100 * tube:.0f} % tissue "
-                        "along the probe)")]
+                        f"along the probe, {margin:+.2f} ahead of the best rival site)"),
+          "pylorus: " + (f"where the lumen widens to the pyloric canal, {tail_mm:.0f} mm from the far end"
+                         + (" (past a thin duodenal gas tail)" if tail_mm > 2 * PROFILE_BIN_MM else "")
+                         if tail_mm <= PYLORUS_MAX_TAIL_MM else
+                         f"no canal-wide lumen within {tail_mm:.0f} mm of the far end: unsure")]
+    if weak:
+        ev.append("the oesophageal tissue tube is faint and another site on the dome scores as well: unsure of the "
+                  "cardia")
     if length < 80.0:
         c_conf, p_conf = c_conf * 0.5, p_conf * 0.5
         ev.append(f"the region is only {length:.0f} mm long (a stomach is over 80 mm): unsure")
@@ -429,7 +520,8 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
         c_conf *= 0.5
         ev.append(f"no fundus dome (widest {radius:.0f} mm): unsure of the cardia")
     return {"cardia": cardia, "pylorus": pyl, "cardia_confidence": c_conf, "pylorus_confidence": p_conf,
-            "evidence": ev}
+            "evidence": ev, "details": {"cardia_tissue": tube, "cardia_margin": margin, "gas_tube": gas_tube is not None,
+                                        "tail_mm": tail_mm, "radius_mm": radius, "length_mm": length}}
 
 
 # ---------------------------------------------------------------------------------------------- from the gas

@@ -565,3 +565,47 @@ def test_auto_reads_a_totalsegmentator_label_map_picked_as_the_mask(gui, stomach
     added = {scene.GetNthNode(i).GetClassName() for i in range(scene.GetNumberOfNodes())
              if scene.GetNthNode(i).GetID() not in before}
     assert all("Markups" in c for c in added), added  # only the new point list: no label map left behind
+
+
+def test_auto_reads_a_segmentation_by_segment_name_and_terminology(gui, stomach, monkeypatch):
+    """A segmentation node (as SlicerTotalSegmentator makes): organs by segment name or SNOMED terminology code; a
+    hidden segment before them must not shift which exported label is which."""
+    from StomachUnfoldEval.auto_points import totalseg_labels
+    from StomachUnfoldLib.geometry import lps_to_ras
+
+    module, widget, scene = gui
+    (vol, truth, lab), _ = stomach
+    seg = totalseg_labels(vol, lab, truth, "total")
+    widget._parameterNode.inputVolume = widget.logic.volumeNodeFromVolume(vol, "r0")
+    labelNode = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "total")
+    labelNode.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(vol.index_to_ras_matrix))
+    slicer.util.updateVolumeFromArray(labelNode, np.ascontiguousarray(seg))
+    segNode = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "TotalSegmentator")
+    assert slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelNode, segNode)
+    scene.RemoveNode(labelNode)
+    segNode.CreateDefaultDisplayNodes()
+    segmentation = segNode.GetSegmentation()
+    byValue = {segmentation.GetNthSegment(i).GetLabelValue(): segmentation.GetNthSegmentID(i)
+               for i in range(segmentation.GetNumberOfSegments())}
+    assert {1, 5, 6, 15, 19} <= set(byValue)
+    segmentation.GetSegment(byValue[6]).SetName("stomach")
+    oesophagus = segmentation.GetSegment(byValue[15])
+    oesophagus.SetName("Segment_3")  # known by its terminology code only
+    oesophagus.SetTerminology("Segmentation category and type - 3D Slicer General Anatomy list~SCT^123037004^"
+                              "Anatomical Structure~SCT^32849002^Esophagus~^^~Anatomic codes - DICOM master list~^^~^^")
+    segmentation.GetSegment(byValue[19]).SetName("duodenum")
+    segNode.GetDisplayNode().SetSegmentVisibility(byValue[1], False)  # the spleen, first in order, hidden
+    widget._parameterNode.maskNode = segNode
+    warnings = []
+    monkeypatch.setattr(slicer.util, "warningDisplay", lambda *a, **k: warnings.append(a))
+    before = {scene.GetNthNode(i).GetID() for i in range(scene.GetNumberOfNodes())}
+    widget.ui.autoPointsButton.click()
+    found = widget.lastAutoPoints
+    assert found.source == "segmentation" and found.convention == "names" and warnings == [], found.evidence
+    assert set(found.labels) == {"stomach", "esophagus", "duodenum"}
+    pts = _points(widget._parameterNode.pointsNode)
+    for name in ("cardia", "pylorus"):
+        assert np.linalg.norm(pts[name][0] - lps_to_ras(np.asarray(truth[f"{name}_lps"]))) <= 10.0
+    added = {scene.GetNthNode(i).GetClassName() for i in range(scene.GetNumberOfNodes())
+             if scene.GetNthNode(i).GetID() not in before}
+    assert all("Markups" in c for c in added), added
