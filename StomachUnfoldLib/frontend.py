@@ -361,7 +361,9 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     seconds: dict[str, float] = {}
     if hasattr(getattr(ct, "array", None), "scan") and mask is None:  # a CT on file: one pass, range and air
+        t_scan = time.perf_counter()
         ct.array.scan(params.air_threshold_hu)
+        seconds["reading"] = time.perf_counter() - t_scan  # and the crop's read below
     warnings = check_volume(ct)
     cardia, pylorus, w = check_points(ct, cardia_lps, pylorus_lps, params.swap_check)
     warnings += w
@@ -371,7 +373,10 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     cell_mm = np.array(grid_steps(ct.spacing, params.grid_voxels(ct.spacing))) * ct.spacing
     margin = crop_margin_mm(params, cell_mm)
     lo, hi = bounding_box(lumen, tuple(int(np.ceil(margin / s)) for s in ct.spacing))
+    t_crop = time.perf_counter()
     crop = ct.crop(lo, hi)
+    if "reading" in seconds:  # a CT on file: the crop is read now
+        seconds["reading"] += time.perf_counter() - t_crop
     lumen_c = np.ascontiguousarray(lumen[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]])
     del lumen
     if hasattr(ct.array, "release"):
