@@ -378,7 +378,7 @@ def full_size_run(path: str, truth: dict, out_dir: str, profile: bool = False) -
     from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
     from .markers import marker_metrics
 
-    floor = floor_seconds(path)
+    floor = _isolated(floor_seconds, path)  # in its own process: its whole read is not this run's peak memory
     out = tempfile.mkdtemp(prefix="su-full-out-")
     try:
         prof = cProfile.Profile() if profile else None
