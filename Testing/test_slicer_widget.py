@@ -541,17 +541,23 @@ def test_auto_warns_when_unsure_and_still_places_best_guesses(gui, stomach, monk
     assert not widget.lastAutoPoints.confident
 
 
-def test_auto_reads_a_totalsegmentator_label_map_picked_as_the_mask(gui, stomach, monkeypatch):
+def _totalseg_label_node(widget, scene, vol, truth, lab):
+    """The input volume set from ``vol`` and a TotalSegmentator-like label map node of its stomach (v2 numbers)."""
     from StomachUnfoldEval.auto_points import totalseg_labels
+
+    widget._parameterNode.inputVolume = widget.logic.volumeNodeFromVolume(vol, "r0")
+    labelNode = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "total")
+    labelNode.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(vol.index_to_ras_matrix))
+    slicer.util.updateVolumeFromArray(labelNode, np.ascontiguousarray(totalseg_labels(vol, lab, truth, "total")))
+    return labelNode
+
+
+def test_auto_reads_a_totalsegmentator_label_map_picked_as_the_mask(gui, stomach, monkeypatch):
     from StomachUnfoldLib.geometry import lps_to_ras
 
     module, widget, scene = gui
     (vol, truth, lab), _ = stomach
-    seg = totalseg_labels(vol, lab, truth, "total")
-    widget._parameterNode.inputVolume = widget.logic.volumeNodeFromVolume(vol, "r0")
-    labelNode = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "total")
-    labelNode.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(vol.index_to_ras_matrix))
-    slicer.util.updateVolumeFromArray(labelNode, np.ascontiguousarray(seg))
+    labelNode = _totalseg_label_node(widget, scene, vol, truth, lab)
     widget._parameterNode.maskNode = labelNode
     warnings = []
     monkeypatch.setattr(slicer.util, "warningDisplay", lambda *a, **k: warnings.append(a))
@@ -570,16 +576,11 @@ def test_auto_reads_a_totalsegmentator_label_map_picked_as_the_mask(gui, stomach
 def test_auto_reads_a_segmentation_by_segment_name_and_terminology(gui, stomach, monkeypatch):
     """A segmentation node (as SlicerTotalSegmentator makes): organs by segment name or SNOMED terminology code; a
     hidden segment before them must not shift which exported label is which."""
-    from StomachUnfoldEval.auto_points import totalseg_labels
     from StomachUnfoldLib.geometry import lps_to_ras
 
     module, widget, scene = gui
     (vol, truth, lab), _ = stomach
-    seg = totalseg_labels(vol, lab, truth, "total")
-    widget._parameterNode.inputVolume = widget.logic.volumeNodeFromVolume(vol, "r0")
-    labelNode = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "total")
-    labelNode.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(vol.index_to_ras_matrix))
-    slicer.util.updateVolumeFromArray(labelNode, np.ascontiguousarray(seg))
+    labelNode = _totalseg_label_node(widget, scene, vol, truth, lab)
     segNode = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "TotalSegmentator")
     assert slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelNode, segNode)
     scene.RemoveNode(labelNode)
