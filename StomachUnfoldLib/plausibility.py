@@ -71,8 +71,8 @@ def hidden_fold_warnings(folds: list[dict], unfolded: Volume, correspondence, or
             fold["where"] = where_on_view(ij[0], ij[1], unfolded.array.shape[1:], orient)
         where = f" {fold['where']}" if "where" in fold else ""
         out.append(f"a fold of the flat map was peeled off: {fold['area_mm2']:.0f} mm^2 of mucosa{where} (ring F{n} "
-                   "on view.png) is not shown, its place taken by the mucosa around it; read that part on the "
-                   "original CT")
+                   "in the command line's view.png) is not shown, its place taken by the mucosa around it; read that "
+                   "part on the original CT")
     return out
 
 

@@ -774,8 +774,8 @@ class IsometricFlattening(Method):
             info["flat_overlap_fraction"] = _overlap_fraction(uv, cut.f, prep.pixel_mm)
             if fb is not None and info["flat_overlap_fraction"] <= OVERLAP_TOLERANCE:
                 fb = None                      # a small fold: peeled off the converged map
-            uv, f_keep, f_fold = _settle(cut, (uv, fb, lambda: arap(cut.v, cut.f, uv0, boundary_weight=BOUNDARY_WEIGHT)[0]),
-                                         prep.pixel_mm, info)
+            plain = lambda: arap(cut.v, cut.f, uv0, boundary_weight=BOUNDARY_WEIGHT)[0]  # noqa: E731 (no terms)
+            uv, f_keep, f_fold = _settle(cut, (uv, fb, plain), prep.pixel_mm, info)
             hidden = cut.v[np.unique(f_fold)] if len(f_fold) else None  # the peeled folds' mucosa: not on the view
             info["hidden_folds"] = hidden_folds(cut.v, f_fold, f_keep)
             info["hidden_fold_mm2"] = float(triangle_frames(cut.v, f_fold)[1].sum()) if len(f_fold) else 0.0
