@@ -16,6 +16,7 @@ from .errors import InputError, PointError
 from .geometry import Volume, lps_to_ras
 from .params import UnfoldParameters
 from .progress import Progress
+from .volume_file import FileArray
 
 __all__ = ["Prepared", "prepare", "check_volume", "check_points", "outside_message", "crop_margin_mm", "timed_stage",
            "available_memory_bytes", "estimate_memory_bytes", "check_incision_curve", "check_mask_region",
@@ -145,7 +146,7 @@ def return_freed_memory() -> bool:
 def estimate_memory_bytes(ct: Volume) -> int:
     """Rough peak extra memory (bytes) of a run on this CT: masks and labels over the whole grid, before cropping
     (a CT left on file, read box by box, needs only its packed air mask: an eighth of a byte per voxel)."""
-    return int(ct.array.size * (0.125 if hasattr(ct.array, "read_box") else 6))
+    return int(ct.array.size * (0.125 if isinstance(ct.array, FileArray) else 6))
 
 
 #: Rough working memory (bytes) per vertex of the hexahedral wall model: springs, the sparse system and its factor.
@@ -211,7 +212,7 @@ def check_volume(ct: Volume) -> list[str]:
 
 def _value_range(a) -> tuple[float, float, int]:
     """(lowest, highest finite value, count of NaN or infinite values) of an ndarray or a FileArray (one scan)."""
-    if hasattr(a, "value_range"):
+    if isinstance(a, FileArray):
         return a.value_range()
     bad = 0
     if a.dtype.kind == "f":
@@ -360,7 +361,8 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     params.validate()
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     seconds: dict[str, float] = {}
-    if hasattr(getattr(ct, "array", None), "scan") and mask is None:  # a CT on file: one pass, range and air
+    on_file = isinstance(getattr(ct, "array", None), FileArray)
+    if on_file and mask is None:  # a CT on file: one pass for the value range and the air
         t_scan = time.perf_counter()
         ct.array.scan(params.air_threshold_hu)
         seconds["reading"] = time.perf_counter() - t_scan  # and the crop's read below
@@ -375,11 +377,11 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     lo, hi = bounding_box(lumen, tuple(int(np.ceil(margin / s)) for s in ct.spacing))
     t_crop = time.perf_counter()
     crop = ct.crop(lo, hi)
-    if "reading" in seconds:  # a CT on file: the crop is read now
-        seconds["reading"] += time.perf_counter() - t_crop
+    if on_file:  # the crop is read now
+        seconds["reading"] = seconds.get("reading", 0.0) + time.perf_counter() - t_crop
     lumen_c = np.ascontiguousarray(lumen[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]])
     del lumen
-    if hasattr(ct.array, "release"):
+    if on_file:
         ct.array.release()
     with timed_stage(prog, "wall region", seconds, *FRONT_STAGES[1][1:]):
         wall = wall_region(lumen_c, crop.spacing, params.wall_thickness_mm)

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .volume_file import FileArray
+
 __all__ = ["Volume", "ras_to_lps", "lps_to_ras"]
 
 
@@ -63,7 +65,7 @@ class Volume:
     direction: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def __post_init__(self):
-        if not hasattr(self.array, "read_box"):  # a volume_file.FileArray stays on file, read box by box
+        if not isinstance(self.array, FileArray):  # a CT left on file stays there, read box by box
             self.array = np.asarray(self.array)
         if self.array.ndim != 3:
             raise ValueError(f"a Volume needs a 3D array, got shape {self.array.shape}")

@@ -15,6 +15,7 @@ from scipy import ndimage
 
 from .errors import AnatomyError, InputError, PointError
 from .geometry import Volume, lps_to_ras
+from .volume_file import FileArray, PackedMask
 
 __all__ = ["distance_mm", "snap_to_region", "air_region", "fluid_below_level", "lumen_from_mask", "wall_region", "bounding_box",
            "BelowThreshold", "MAX_STOMACH_ML"]
@@ -282,7 +283,7 @@ def flood_fill(image: np.ndarray, seed) -> np.ndarray:
     """
     import SimpleITK as sitk
 
-    if not (isinstance(image, BelowThreshold) or hasattr(image, "packed")):  # lazy masks are indexed as they are
+    if not isinstance(image, (BelowThreshold, PackedMask)):  # lazy masks are indexed as they are
         image = np.asarray(image, bool)
     s = tuple(int(x) for x in seed)
     if image.ndim != 3 or len(s) != 3 or any(not 0 <= x < n for x, n in zip(s, image.shape)):
@@ -511,7 +512,7 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     for name, p in pts.items():
         _check_inside(ct, p, name)
     # thresholded where looked at (no whole-CT mask); a CT on file gives its air from one scan, packed in bits
-    air = ct.array.below(threshold_hu) if hasattr(ct.array, "below") else BelowThreshold(ct.array, threshold_hu)
+    air = ct.array.below(threshold_hu) if isinstance(ct.array, FileArray) else BelowThreshold(ct.array, threshold_hu)
     if progress is not None:
         progress(0.1)
     seeds = {}

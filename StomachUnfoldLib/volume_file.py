@@ -142,14 +142,18 @@ class FileArray:
                 continue
             a, b = min(vals[0], vals[-1]), max(vals[0], vals[-1]) + 1
             lo.append(a), hi.append(b)
-            local.append(slice(vals[0] - a, None if step < 0 and vals[-1] == a else vals[-1] - a + (1 if step > 0 else -1), step))
+            local.append(_slice((start - a, stop - a, step)))  # the same slice, on the box read
         block = self.read_box(lo, hi)
         out = block[tuple(local)]
         return out[()] if out.ndim == 0 else out
 
     def slabs(self, depth: int = SLAB_SLICES):
         """Yield ``(k0, block)`` for consecutive slabs of ``depth`` slices covering the whole grid (one pass)."""
-        yield from self._backend.slabs(self.shape, depth)
+        if getattr(self._backend, "gzip", False):  # one decompression from the start, not one per slab
+            yield from self._backend.gzip_slabs(0, self.shape[0], depth)
+            return
+        for k0 in range(0, self.shape[0], depth):
+            yield k0, self.read_box((k0, 0, 0), (min(k0 + depth, self.shape[0]),) + self.shape[1:])
 
     def scan(self, threshold_hu: float | None = None) -> None:
         """Read the file once: value range, non-finite count and (if given) the air below ``threshold_hu`` (HU)."""
@@ -220,10 +224,6 @@ class _SitkBackend:
 
             raise InputError(f"cannot read {self.path}: {itk_reason(e)}; the file is damaged, export it again") from None
 
-    def slabs(self, shape, depth):
-        for k0 in range(0, shape[0], depth):
-            yield k0, self.read((k0, 0, 0), (min(k0 + depth, shape[0]), shape[1], shape[2]))
-
 
 class _NrrdBackend:
     """Boxes of a NRRD file's attached raw (memory-mapped) or gzip (decompressed up to the box) data."""
@@ -257,7 +257,7 @@ class _NrrdBackend:
         out = np.empty((hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]), self.dtype.newbyteorder("="))
 
         def part(ka, kb):
-            for k0, block in self._gzip_slabs(ka, kb, SLAB_SLICES):
+            for k0, block in self.gzip_slabs(ka, kb, SLAB_SLICES):
                 out[k0 - lo[0]:k0 - lo[0] + len(block)] = block[box]
         parts = self._parts(lo[0], hi[0])
         if len(parts) == 1:
@@ -280,13 +280,6 @@ class _NrrdBackend:
         cuts = sorted({starts[min(len(starts) - 1, int(round(j * len(starts) / n)))] for j in range(1, n)})
         edges = [k_lo] + cuts + [k_hi]
         return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
-    def slabs(self, shape, depth):
-        if not self.gzip:
-            for k0 in range(0, shape[0], depth):
-                yield k0, self.read((k0, 0, 0), (min(k0 + depth, shape[0]), shape[1], shape[2]))
-            return
-        yield from self._gzip_slabs(0, shape[0], depth)
 
     def _gzip_chunks(self, start: int):
         """Yield ``(u, bytes)``: the data's decompressed bytes from uncompressed offset ``u``, in chunks of at most
@@ -319,7 +312,7 @@ class _NrrdBackend:
                     yield u, out
                     u += len(out)
 
-    def _gzip_slabs(self, k_lo: int, k_hi: int, depth: int):
+    def gzip_slabs(self, k_lo: int, k_hi: int, depth: int):
         """Yield (k0, native block) of slices k_lo..k_hi-1, decompressed from the nearest mark before k_lo."""
         sb, k = self.slice_bytes, k_lo
         chunks = self._gzip_chunks(k_lo * sb)
