@@ -266,7 +266,6 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     result.report.warnings += plausibility_warnings(
         ct, prep.cardia_lps, prep.pylorus_lps, (prep.air_info or {}).get("volume_ml"), result.report.quality,
         out.unfolded, orient)
-    result.report.warnings += hidden_fold_warnings(out.report.get("hidden_folds") or [], out.unfolded,
-                                                   out.correspondence, orient)
+    result.report.warnings += hidden_fold_warnings(out.report.get("hidden_folds") or [], out.unfolded, orient)
     seconds["total"] = time.perf_counter() - t_all
     return result

@@ -55,20 +55,13 @@ def where_on_view(i: float, j: float, shape, orient: dict | None = None) -> str:
     return along + (f", {half} half" if half else (", upper half" if fj > 0.5 else ", lower half"))
 
 
-def hidden_fold_warnings(folds: list[dict], unfolded: Volume, correspondence, orient: dict | None = None) -> list[str]:
-    """One warning per peeled fold of the flat map (``folds``: area mm^2, centroid LPS mm, from the method): its
-    mucosa is not shown, so say how much and where; each fold gets ``view_ij`` (its place on the view, pixels:
-    the mean of its rim ``rim_lps`` mapped, which is dropped) and ``where`` added."""
+def hidden_fold_warnings(folds: list[dict], unfolded: Volume, orient: dict | None = None) -> list[str]:
+    """One warning per peeled fold of the flat map (``folds``: area mm^2 and ``view_ij``, its place on the view in
+    pixels, from the method): its mucosa is not shown, so say how much and where; each fold gets ``where`` added."""
     out = []
     for n, fold in enumerate(folds, 1):
-        rim = np.asarray(fold.pop("rim_lps", []), float).reshape(-1, 3)  # its edge on the kept map
-        q = correspondence.to_unfolded(rim) if len(rim) else np.zeros((0, 3))
-        q = q[np.all(np.isfinite(q), axis=1)]
-        if len(q):
-            p = q.mean(0)
-            ij = unfolded.lps_to_index(p[None])[0][:2]
-            fold["view_ij"] = [float(ij[0]), float(ij[1])]
-            fold["where"] = where_on_view(ij[0], ij[1], unfolded.array.shape[1:], orient)
+        if "view_ij" in fold:
+            fold["where"] = where_on_view(*fold["view_ij"], unfolded.array.shape[1:], orient)
         where = f" {fold['where']}" if "where" in fold else ""
         out.append(f"a fold of the flat map was peeled off: {fold['area_mm2']:.0f} mm^2 of mucosa{where} (ring F{n} "
                    "in the command line's view.png) is not shown, its place taken by the mucosa around it; read that "

@@ -791,6 +791,7 @@ class IsometricFlattening(Method):
             warnings.append(f"the flat map has {info['flipped_final']} flipped triangles")
         with timed_stage(progress, "volume", seconds, 0.6, 1.0) as report:
             vol, fwd, inv, mesh, vinfo = sample_flat_map(prep, cut, uv, report, hidden_lps=hidden)
+            _place_folds(info["hidden_folds"], vol, fwd)
         cut_len = float(np.linalg.norm(cut.v[cut.boundary_edges[:, 0]] - cut.v[cut.boundary_edges[:, 1]],
                                        axis=1).sum()) if len(cut.boundary_edges) else 0.0
         section = {"lumen_fluid_fraction": fluid, **cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
@@ -831,7 +832,8 @@ def hidden_folds(v: np.ndarray, f_fold: np.ndarray, f_keep: np.ndarray, min_area
                  rim_points: int = 64) -> list[dict]:
     """The peeled folds' mucosa, not shown in the view: one entry per patch of peeled triangles (f_fold, joined by
     shared vertices of v, LPS mm) over ``min_area_mm2``: its area (mm^2), area-weighted centroid (LPS mm) and up
-    to ``rim_points`` of its vertices on the kept map (``rim_lps``, LPS mm: where the fold lies on the view)."""
+    to ``rim_points`` of its vertices on the kept map (``rim_lps``, LPS mm: where the fold lies on the view, see
+    :func:`_place_folds`)."""
     from scipy.sparse.csgraph import connected_components
 
     if len(f_fold) == 0:
@@ -850,6 +852,16 @@ def hidden_folds(v: np.ndarray, f_fold: np.ndarray, f_keep: np.ndarray, min_area
             rim = rim[np.linspace(0, len(rim) - 1, min(len(rim), rim_points)).astype(int)] if len(rim) else rim
             out.append({"area_mm2": a, "centroid_lps": (area[m] @ cent[m] / a).tolist(), "rim_lps": v[rim].tolist()})
     return sorted(out, key=lambda d: -d["area_mm2"])
+
+
+def _place_folds(folds: list[dict], vol, to_unfolded) -> None:
+    """Give each hidden fold its place on the view, ``view_ij`` (pixels): the mean of its rim (``rim_lps``, dropped)
+    mapped onto the view."""
+    for fold in folds:
+        q = to_unfolded(np.asarray(fold.pop("rim_lps"), float).reshape(-1, 3))
+        q = q[np.all(np.isfinite(q), axis=1)]
+        if len(q):
+            fold["view_ij"] = [float(x) for x in vol.lps_to_index(q.mean(0)[None])[0][:2]]
 
 
 def largest_defect_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
