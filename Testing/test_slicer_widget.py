@@ -552,24 +552,29 @@ def _totalseg_label_node(widget, scene, vol, truth, lab):
     return labelNode
 
 
+def _click_auto(widget, scene, maskNode, monkeypatch):
+    """Pick ``maskNode`` as the mask and press Auto: (the found points, warnings shown, classes of nodes added)."""
+    widget._parameterNode.maskNode = maskNode
+    warnings = []
+    monkeypatch.setattr(slicer.util, "warningDisplay", lambda *a, **k: warnings.append(a))
+    before = {scene.GetNthNode(i).GetID() for i in range(scene.GetNumberOfNodes())}
+    widget.ui.autoPointsButton.click()
+    added = {scene.GetNthNode(i).GetClassName() for i in range(scene.GetNumberOfNodes())
+             if scene.GetNthNode(i).GetID() not in before}
+    return widget.lastAutoPoints, warnings, added
+
+
 def test_auto_reads_a_totalsegmentator_label_map_picked_as_the_mask(gui, stomach, monkeypatch):
     from StomachUnfoldLib.geometry import lps_to_ras
 
     module, widget, scene = gui
     (vol, truth, lab), _ = stomach
     labelNode = _totalseg_label_node(widget, scene, vol, truth, lab)
-    widget._parameterNode.maskNode = labelNode
-    warnings = []
-    monkeypatch.setattr(slicer.util, "warningDisplay", lambda *a, **k: warnings.append(a))
-    before = {scene.GetNthNode(i).GetID() for i in range(scene.GetNumberOfNodes())}
-    widget.ui.autoPointsButton.click()
-    found = widget.lastAutoPoints
+    found, warnings, added = _click_auto(widget, scene, labelNode, monkeypatch)
     assert found.source == "segmentation" and found.convention == "total" and warnings == []
     assert found.labels == {"stomach": 6, "esophagus": 15, "duodenum": 19}
     pts = _points(widget._parameterNode.pointsNode)
     assert np.linalg.norm(pts["cardia"][0] - lps_to_ras(np.asarray(truth["cardia_lps"]))) <= 10.0
-    added = {scene.GetNthNode(i).GetClassName() for i in range(scene.GetNumberOfNodes())
-             if scene.GetNthNode(i).GetID() not in before}
     assert all("Markups" in c for c in added), added  # only the new point list: no label map left behind
 
 
@@ -596,17 +601,10 @@ def test_auto_reads_a_segmentation_by_segment_name_and_terminology(gui, stomach,
                               "Anatomical Structure~SCT^32849002^Esophagus~^^~Anatomic codes - DICOM master list~^^~^^")
     segmentation.GetSegment(byValue[19]).SetName("duodenum")
     segNode.GetDisplayNode().SetSegmentVisibility(byValue[1], False)  # the spleen, first in order, hidden
-    widget._parameterNode.maskNode = segNode
-    warnings = []
-    monkeypatch.setattr(slicer.util, "warningDisplay", lambda *a, **k: warnings.append(a))
-    before = {scene.GetNthNode(i).GetID() for i in range(scene.GetNumberOfNodes())}
-    widget.ui.autoPointsButton.click()
-    found = widget.lastAutoPoints
+    found, warnings, added = _click_auto(widget, scene, segNode, monkeypatch)
     assert found.source == "segmentation" and found.convention == "names" and warnings == [], found.evidence
     assert set(found.labels) == {"stomach", "esophagus", "duodenum"}
     pts = _points(widget._parameterNode.pointsNode)
     for name in ("cardia", "pylorus"):
         assert np.linalg.norm(pts[name][0] - lps_to_ras(np.asarray(truth[f"{name}_lps"]))) <= 10.0
-    added = {scene.GetNthNode(i).GetClassName() for i in range(scene.GetNumberOfNodes())
-             if scene.GetNthNode(i).GetID() not in before}
     assert all("Markups" in c for c in added), added
