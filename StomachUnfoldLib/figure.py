@@ -272,15 +272,16 @@ def annotate_panel(rgb: np.ndarray, spacing_ij, trusted: np.ndarray, orient: dic
         x = int(left + W + 1.6 * side)
         canvas[top + H // 2 - 1:top + H // 2 + 1, x:x + side // 3] = 1.0
     bar = _scale_bar(canvas, trusted, (top, left, H, W), px_mm, font)
+
+    def to_px(p):  # continuous view index (i, j) -> canvas pixel (x, y), rows from the top
+        return left + (p[0] + 0.5) / ni * W, top + (nj - (p[1] + 0.5)) / nj * H
     marks = {}
     if landmarks_ij:
-        px = {n: (left + (p[0] + 0.5) / ni * W, top + (nj - (p[1] + 0.5)) / nj * H) for n, p in landmarks_ij.items()
-              if np.all(np.isfinite(p[:2]))}
-        marks = _landmarks(canvas, px, font)
+        marks = _landmarks(canvas, {n: to_px(p) for n, p in landmarks_ij.items() if np.all(np.isfinite(p[:2]))}, font)
     folds = {}
     if folds_ij:
-        px = {n: (left + (p[0] + 0.5) / ni * W, top + (nj - (p[1] + 0.5)) / nj * H) for n, p in folds_ij.items()}
-        folds = _landmarks(canvas, px, font, FOLD_RGB, {n: p[2] / px_mm for n, p in folds_ij.items()}, dashed=True)
+        folds = _landmarks(canvas, {n: to_px(p) for n, p in folds_ij.items()}, font, FOLD_RGB,
+                           {n: p[2] / px_mm for n, p in folds_ij.items()}, dashed=True)
     layout = {"title": title, "view_origin_px": [left, top], "view_size_px": [W, H], "pixel_mm": px_mm,
               "scale_bar": bar, "labels": labels, "landmarks_px": marks, "folds_px": folds}
     return canvas, layout
@@ -332,7 +333,8 @@ def write_view(unfolded: Volume, path: str, shaded: np.ndarray, dmap=None, orien
     ``dmap``: the DistortionMap (the bar goes where lengths hold; without it, anywhere on the view); ``orient``:
     :func:`orientation`'s labels; ``landmarks_lps``: {name: LPS mm in the unfolded frame} drawn as rings;
     ``folds``: the method's peeled folds (``view_ij``, ``area_mm2``), whose mucosa is not shown, drawn as
-    dashed orange rings F1, F2, ... of the same area. Returns the layout {"pixel_mm", "panels": [...], "orientation"} (pixels of the PNG, rows top to bottom).
+    dashed orange rings F1, F2, ... of the same area. Returns the layout {"pixel_mm", "panels": [...],
+    "orientation"} (pixels of the PNG, rows top to bottom).
     """
     from .distortion import TRUST_LIMIT
     from .view import first_hit, write_png
