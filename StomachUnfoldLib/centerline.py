@@ -16,7 +16,16 @@ from scipy.spatial import cKDTree
 from .errors import AnatomyError, InputError, PointError
 from .geometry import Volume
 
-__all__ = ["Centerline", "compute_centerline"]
+__all__ = ["Centerline", "compute_centerline", "in_openings", "OPENING_RADIUS_MM", "OPENING_TUBE_FACTOR"]
+
+#: Radius (mm) about the centreline's end points (the cardia and pylorus) of the openings where the oesophagus
+#: and the duodenum join: about the oesophagus with its wall (outer radius 6-8 mm) or the pyloric canal, plus the
+#: end point's few millimetres from the wall. Mucosa behind an end plane but farther from the end point is the
+#: stomach's own (the cardia opens in the side of the fundus dome, not at the end of a tube) and is kept.
+OPENING_RADIUS_MM = 10.0
+#: At the end of a tube (the end point in the middle of a lumen that ends there) the opening is the whole end: up to
+#: this many times the end point's distance from the wall.
+OPENING_TUBE_FACTOR = 2.0
 
 
 @dataclass
@@ -41,6 +50,29 @@ class Centerline:
         """Index of the nearest centreline point for each LPS point (mm); int array of the input's leading shape."""
         p = np.asarray(points_lps, float)
         return cKDTree(self.points_lps).query(p.reshape(-1, 3))[1].reshape(p.shape[:-1])
+
+
+def in_openings(points_lps, centerline_lps, margin_mm: float = 0.0, radius_mm: float = OPENING_RADIUS_MM
+                ) -> np.ndarray:
+    """Which points (N,3, LPS mm) of the inner wall lie in the cardia or pylorus opening.
+
+    A point is in an opening when its nearest centreline point (LPS mm) is an end point, it lies more than
+    ``margin_mm`` behind the plane through that end (normal: the end's tangent), and it is within ``radius_mm`` of
+    the end point, or OPENING_TUBE_FACTOR times the end point's distance from the nearest of ``points_lps`` when that
+    is larger (the whole end of a tube). The one rule the methods trim by and the quality judge leaves out.
+    """
+    pts = np.asarray(points_lps, float).reshape(-1, 3)
+    cl = np.asarray(centerline_lps, float)
+    if len(cl) < 3 or not len(pts):
+        return np.zeros(len(pts), bool)
+    _, k = cKDTree(cl).query(pts)
+    out = np.zeros(len(pts), bool)
+    for end, t, sign in ((0, cl[1] - cl[0], -1.0), (len(cl) - 1, cl[-1] - cl[-2], 1.0)):
+        t = t / max(float(np.linalg.norm(t)), 1e-12)
+        d = np.linalg.norm(pts - cl[end], axis=1)
+        r = max(float(radius_mm), OPENING_TUBE_FACTOR * float(d.min()))
+        out |= (k == end) & (sign * ((pts - cl[end]) @ t) > margin_mm) & (d < r)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- helpers

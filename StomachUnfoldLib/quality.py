@@ -74,8 +74,9 @@ def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, 
     """LPS points (mm) on the original inner wall between the cardia and pylorus: lumen voxels touching non-lumen,
     moved onto the lumen's boundary (:func:`onto_wall`).
 
-    With the centreline, points beyond the planes through its end points (the openings the method trims)
-    are left out.
+    With the centreline, points in the cardia and pylorus openings (``centerline.in_openings``, the rule the
+    methods trim by) are left out, and so is what they cut off: a gas-filled oesophagus or duodenum beyond them
+    (pieces of the wall with no point nearest to an inner centreline point).
     """
     lum = lumen_crop.array.astype(bool)
     edge = lum & ~ndimage.binary_erosion(lum, border_value=1)
@@ -83,11 +84,18 @@ def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, 
     if centerline_lps is not None and len(centerline_lps) > 2:
         from scipy.spatial import cKDTree
 
+        from .centerline import in_openings
+
         cl = np.asarray(centerline_lps, float)
-        _, k = cKDTree(cl).query(pts)
-        t0, t1 = cl[1] - cl[0], cl[-1] - cl[-2]
-        beyond = ((k == 0) & ((pts - cl[0]) @ t0 < 0)) | ((k == len(cl) - 1) & ((pts - cl[-1]) @ t1 > 0))
-        pts = pts[~beyond]
+        kk, jj, ii = np.nonzero(edge)
+        keep = ~in_openings(pts, cl)
+        edge[kk[~keep], jj[~keep], ii[~keep]] = False
+        lab, _ = ndimage.label(edge, structure=np.ones((3, 3, 3), bool))
+        pts, kk, jj, ii = pts[keep], kk[keep], jj[keep], ii[keep]
+        comp = lab[kk, jj, ii]
+        _, near = cKDTree(cl).query(pts)
+        inner = (near > 0) & (near < len(cl) - 1)
+        pts = pts[np.isin(comp, np.unique(comp[inner]))]
     if len(pts) > max_points:
         pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
     return onto_wall(pts, lumen_crop)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ..centerline import in_openings
 from ..correspondence import MapCorrespondence
 from ..errors import AnatomyError, SimulationError
 from ..frontend import timed_stage
@@ -639,9 +640,10 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
                  smooth_iterations: int = 10, margin_mm: float = 1.0, progress=None) -> IsoSurface:
     """The lumen's whole inner wall (LPS mm), opened where the judge's mucosa ends, cut along the incision: a disc.
 
-    The closed iso-surface of the lumen is smoothed (Taubin), the caps beyond the centreline's end planes that the
-    quality judge leaves out (vertices whose nearest centreline point is an end point, ``margin_mm`` beyond its
-    plane) are removed, which opens the cardia and pylorus ends, and the tube is cut along the shortest mesh path
+    The closed iso-surface of the lumen is smoothed (Taubin), the cardia and pylorus openings that the quality
+    judge leaves out (``centerline.in_openings``: nearest to an end point, ``margin_mm`` behind its plane and within
+    OPENING_RADIUS_MM of it) are removed, with whatever they cut off (a gas-filled oesophagus or duodenum), and the
+    tube is cut along the shortest mesh path
     from the cardia opening to the pylorus opening that keeps close to the incision line (Dijkstra, edge cost
     length x (1 + (distance to the incision / 2 mm)^2)); the path's vertices are duplicated.
     """
@@ -661,11 +663,9 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     progress(0.5)
     P = np.asarray(cl.points_lps, float)
     arc = np.asarray(cl.arclength_mm, float)
-    # the judge's rule (quality.mucosa_points): beyond the plane through an end point, nearest to that end point
+    # the judge's rule (quality.mucosa_points): the cardia and pylorus openings about the centreline's end points
     _, kc = cKDTree(P).query(v)
-    t0, t1 = unit(P[1] - P[0]), unit(P[-1] - P[-2])
-    beyond = (((kc == 0) & ((v - P[0]) @ t0 < -margin_mm))
-              | ((kc == len(P) - 1) & ((v - P[-1]) @ t1 > margin_mm)))
+    beyond = in_openings(v, P, margin_mm)
     for end in (0, len(P) - 1):
         # no cap beyond this end (a closed end of the lumen at its point): open a small hole around the end point
         side = (kc == end) & beyond
