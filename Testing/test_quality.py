@@ -74,3 +74,35 @@ def test_grade_and_metrics_of_default_and_paper_forces(j_phantom):
     order = ["excellent", "good", "fair", "bad"]
     assert order.index(paper["grade"]) > order.index(q["grade"])
     assert set(GRADE_THRESHOLDS) == {"excellent", "good", "fair"}
+
+
+def _ball_with_side_tube():
+    """Lumen: a ball of radius 25 mm (1 mm voxels, centre at LPS 0) and a gas tube (radius 2 mm) leaving its +x side."""
+    n = 81
+    g = (np.arange(n) - 40).astype(float)
+    z, y, x = np.meshgrid(g, g, g, indexing="ij")
+    lumen = (x ** 2 + y ** 2 + z ** 2 <= 25.0 ** 2) | ((x > 0) & (y ** 2 + z ** 2 <= 2.0 ** 2))
+    vol = Volume(lumen.astype(np.uint8), [1.0, 1.0, 1.0], [-40.0, -40.0, -40.0])
+    cl = np.stack([np.linspace(20.0, -20.0, 21), np.zeros(21), np.zeros(21)], 1)  # cardia 5 mm inside the +x wall
+    return vol, cl
+
+
+def test_the_judge_keeps_the_wall_beside_a_side_opening_and_drops_the_tube_beyond():
+    from StomachUnfoldLib.centerline import OPENING_RADIUS_MM, in_openings
+    from StomachUnfoldLib.quality import mucosa_points
+
+    vol, cl = _ball_with_side_tube()
+    pts = mucosa_points(vol, cl, max_points=10 ** 6)
+    d0 = np.linalg.norm(pts - cl[0], axis=1)
+    behind = pts[:, 0] > cl[0, 0]                       # behind the cardia's end plane
+    # the wall behind the end plane but farther than the opening radius is the stomach's own: counted
+    assert np.sum(behind & (d0 > OPENING_RADIUS_MM + 1.0)) > 100
+    # nothing inside the opening, and the gas tube beyond it (an open oesophagus) is not the stomach's mucosa
+    assert not np.any(behind & (d0 < OPENING_RADIUS_MM - 1.0))
+    assert pts[:, 0].max() < 25.0 + 1.0
+    # at the end of a tube (end point in the middle of the lumen) the whole end is the opening
+    tube = np.stack([np.full(200, 31.0), 15.0 * np.cos(np.linspace(0, 6.28, 200)),
+                     15.0 * np.sin(np.linspace(0, 6.28, 200))], 1)
+    cap = np.array([[40.0, 0.0, 0.0], [36.0, 9.0, 0.0], [32.0, 0.0, 14.0]])
+    cl_t = np.stack([np.linspace(30.0, -30.0, 31), np.zeros(31), np.zeros(31)], 1)[::-1]
+    assert in_openings(np.vstack([tube, cap]), cl_t)[-3:].all()
