@@ -216,10 +216,12 @@ LANDMARK_RGB, FOLD_RGB = (0.2, 0.95, 1.0), (1.0, 0.55, 0.1)
 
 
 def _landmarks(canvas, marks_px: dict, size: int, colour=LANDMARK_RGB, radii: dict | None = None,
-               dashed: bool = False) -> dict:
+               dashed: bool = False, taken: list | None = None) -> dict:
     """Rings and names at view pixels {name: (x, y)} (radius from ``radii`` {name: px}, else a fixed one);
-    returns {name: [x, y]}."""
+    returns {name: [x, y]}. A name whose place overlaps one already written (``taken``: their boxes (x0, y0, x1,
+    y1), appended to) moves down, then up, a line at a time, so that nearby rings' names do not stack."""
     yy, xx = np.mgrid[0:canvas.shape[0], 0:canvas.shape[1]]
+    taken = [] if taken is None else taken
     out = {}
     for name, (x, y) in marks_px.items():
         r = max(4.0, size * 0.45, (radii or {}).get(name, 0.0))
@@ -227,8 +229,15 @@ def _landmarks(canvas, marks_px: dict, size: int, colour=LANDMARK_RGB, radii: di
         if dashed:  # eight dashes round the ring
             ring &= (np.floor((np.arctan2(yy - y, xx - x) + np.pi) / (np.pi / 8)) % 2) == 0
         canvas[ring] = colour
-        _label(canvas, str(name), x + 0.7 * r + 2, y - 0.7 * r, max(9, int(size * 0.7)), anchor="left",
-               colour=colour, shadow=True)
+        fs = max(9, int(size * 0.7))
+        h, w = text_mask(str(name), fs).shape
+        x0, y0 = x + 0.7 * r + 2, y - 0.7 * r
+        for dy in (0, 1, -1, 2, -2, 3, -3):
+            box = (x0, y0 + dy * (h + 2) - h / 2, x0 + w, y0 + dy * (h + 2) + h / 2)
+            if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in taken):
+                break
+        taken.append(box)
+        _label(canvas, str(name), x0, (box[1] + box[3]) / 2, fs, anchor="left", colour=colour, shadow=True)
         out[str(name)] = [float(x), float(y)]
     return out
 
@@ -275,15 +284,16 @@ def annotate_panel(rgb: np.ndarray, spacing_ij, trusted: np.ndarray, orient: dic
 
     def to_px(p):  # continuous view index (i, j) -> canvas pixel (x, y), rows from the top
         return left + (p[0] + 0.5) / ni * W, top + (nj - (p[1] + 0.5)) / nj * H
-    marks = {}
+    marks, folds, taken = {}, {}, []     # taken: the names' boxes, shared so that no two names stack
     if landmarks_ij:
-        marks = _landmarks(canvas, {n: to_px(p) for n, p in landmarks_ij.items() if np.all(np.isfinite(p[:2]))}, font)
-    folds = {}
+        marks = _landmarks(canvas, {n: to_px(p) for n, p in landmarks_ij.items() if np.all(np.isfinite(p[:2]))}, font,
+                           taken=taken)
     if folds_ij:
         folds = _landmarks(canvas, {n: to_px(p) for n, p in folds_ij.items()}, font, FOLD_RGB,
-                           {n: p[2] / px_mm for n, p in folds_ij.items()}, dashed=True)
+                           {n: p[2] / px_mm for n, p in folds_ij.items()}, dashed=True, taken=taken)
     layout = {"title": title, "view_origin_px": [left, top], "view_size_px": [W, H], "pixel_mm": px_mm,
-              "scale_bar": bar, "labels": labels, "landmarks_px": marks, "folds_px": folds}
+              "scale_bar": bar, "labels": labels, "landmarks_px": marks, "folds_px": folds,
+              "ring_name_boxes_px": [list(map(float, b)) for b in taken]}
     return canvas, layout
 
 

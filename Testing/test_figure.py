@@ -232,3 +232,19 @@ def test_plausibility_warnings():
     w = plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, {"grade": "bad", "visible_fraction": 0.4,
                               "failure_parts": 1}, vol, orient)
     assert "hole of 100 mm^2 near the pylorus, anterior half" in w[0]
+
+
+def test_names_of_nearby_rings_do_not_stack():
+    from StomachUnfoldLib.figure import annotate_panel
+
+    rgb = np.full((60, 80, 3), 0.5)
+    orient = {"left": "cardia", "right": "pylorus", "edges": None, "middle": None}
+    _, layout = annotate_panel(rgb, (1.0, 1.0), np.ones((60, 80), bool), orient, 400,
+                               landmarks_ij={"12": (40.0, 30.0)},
+                               folds_ij={"F1": (40.5, 30.5, 6.0), "F2": (41.0, 29.5, 5.5)})
+    boxes = layout["ring_name_boxes_px"]
+    assert len(boxes) == 3
+    for a in range(3):
+        for b in range(a + 1, 3):
+            A, B = boxes[a], boxes[b]
+            assert not (A[0] < B[2] and B[0] < A[2] and A[1] < B[3] and B[1] < A[3]), (A, B)
