@@ -260,12 +260,16 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
                                                     result.centerline_lps, progress=lambda f: report(0.2 + 0.8 * f),
                                                     folded=dmap.multiple if out.mesh.kind == "triangle" else None)
             result.report.quality["distortion_map"] = dmap.summary()
-    from .plausibility import hidden_fold_warnings, plausibility_warnings
+    from .plausibility import gas_contact_fraction, hidden_fold_warnings, plausibility_warnings
 
     orient = result.orientation() if params.quality else None
+    gas = None
+    if result.report.quality and result.report.quality.get("hole_area_fraction", 0.0) > 0:  # what the holes touch
+        gas = gas_contact_fraction(prep.crop, prep.lumen, params.air_threshold_hu)
+        result.report.quality["lumen_gas_contact_fraction"] = gas
     result.report.warnings += plausibility_warnings(
         ct, prep.cardia_lps, prep.pylorus_lps, (prep.air_info or {}).get("volume_ml"), result.report.quality,
-        out.unfolded, orient)
+        out.unfolded, orient, gas)
     result.report.warnings += hidden_fold_warnings(out.report.get("hidden_folds") or [], out.unfolded, orient)
     seconds["total"] = time.perf_counter() - t_all
     return result

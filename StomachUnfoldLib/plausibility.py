@@ -6,10 +6,29 @@ import numpy as np
 
 from .geometry import Volume
 
-__all__ = ["plausibility_warnings", "failure_regions", "hidden_fold_warnings", "where_on_view", "MIN_STOMACH_ML"]
+__all__ = ["plausibility_warnings", "failure_regions", "hidden_fold_warnings", "where_on_view", "gas_contact_fraction",
+           "MIN_STOMACH_ML", "GAS_CONTACT_WARN"]
 
 #: A lumen smaller than this (mL) is an air pocket, not a stomach (a gas-distended stomach holds hundreds of mL).
 MIN_STOMACH_ML = 50.0
+#: Share of the lumen's boundary touching gas outside it from which the view's holes are put down to it.
+GAS_CONTACT_WARN = 0.005
+
+
+def gas_contact_fraction(crop: Volume, lumen: np.ndarray, air_hu: float) -> float:
+    """Share of the lumen's boundary voxels (bool (k, j, i) on the CT crop) with a face neighbour outside the lumen
+    below ``air_hu`` (HU): gas of the colon, the lungs or outside the body against the stomach, with no wall the scan
+    resolves between them (a whole-organ label reaching into it, or a wall thinner than the voxels)."""
+    from scipy import ndimage
+
+    lum = np.asarray(lumen, bool)
+    edge = lum & ~ndimage.binary_erosion(lum, border_value=1)
+    n = int(edge.sum())
+    if n == 0:
+        return 0.0
+    gas = (np.asarray(crop.array) < air_hu) & ~lum
+    touch = edge & ndimage.binary_dilation(gas)
+    return float(touch.sum() / n)
 
 
 def failure_regions(unfolded: Volume, orient: dict | None = None, min_area_mm2: float = 25.0) -> list[dict]:
@@ -70,10 +89,20 @@ def hidden_fold_warnings(folds: list[dict], unfolded: Volume, orient: dict | Non
 
 
 def plausibility_warnings(ct: Volume, cardia_lps, pylorus_lps, lumen_ml: float | None, quality: dict | None,
-                          unfolded: Volume | None = None, orient: dict | None = None) -> list[str]:
+                          unfolded: Volume | None = None, orient: dict | None = None,
+                          gas_contact: float | None = None) -> list[str]:
     """Warnings (plain sentences) on a finished run: lumen under MIN_STOMACH_ML (mL), a point (LPS mm) on the CT's
-    first or last slice, and a grade of fair or worse with its failure parts and where they lie on the view."""
+    first or last slice, a grade of fair or worse with its failure parts and where they lie on the view, and holes
+    in the view where the lumen touches gas outside it (``gas_contact``: :func:`gas_contact_fraction`)."""
     out = []
+    if (gas_contact or 0.0) >= GAS_CONTACT_WARN and unfolded is not None and quality \
+            and quality.get("grade") not in ("fair", "bad"):
+        holes = [p for p in failure_regions(unfolded, orient) if p["kind"] == "hole"]
+        if holes:
+            where = "; ".join(f"{p['area_mm2']:.0f} mm^2 {p['where']}" for p in holes)
+            out.append(f"the view has holes ({where}): {100 * gas_contact:.1f} % of the stomach's boundary touches gas "
+                       "outside it (the colon, a lung base, or gas a stomach label leaves out) with no wall the scan "
+                       "resolves in between, so the rays there meet no tissue; read those parts on the original CT")
     if lumen_ml is not None and lumen_ml < MIN_STOMACH_ML:
         out.append(f"the stomach region holds only {lumen_ml:.0f} mL: probably a gas pocket, not the whole stomach; "
                    "pass --mask with a stomach segmentation (e.g. TotalSegmentator's, label 6)")
@@ -90,6 +119,10 @@ def plausibility_warnings(ct: Volume, cardia_lps, pylorus_lps, lumen_ml: float |
         bent = quality.get("bent_area_fraction") or 0.0
         if bent > 0:
             txt = (txt + "; " if txt else "") + f"{100 * bent:.1f} % of the view bent over 10 mm off its plane"
+        if (gas_contact or 0.0) >= GAS_CONTACT_WARN and any(p["kind"] == "hole" for p in parts):
+            txt += (f"; the holes where {100 * gas_contact:.1f} % of the stomach's boundary touches gas outside it "
+                    "(the colon, a lung base, or gas a stomach label leaves out) with no wall the scan resolves in "
+                    "between")
         out.append(f"grade {quality['grade']}: {100 * (1 - quality.get('visible_fraction', 0)):.0f} % of the mucosa "
                    f"hidden, {quality.get('failure_parts', 0)} failure parts" + (f" ({txt})" if txt else "")
                    + "; read those parts on the original CT")

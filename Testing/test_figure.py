@@ -232,6 +232,25 @@ def test_plausibility_warnings():
     w = plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, {"grade": "bad", "visible_fraction": 0.4,
                               "failure_parts": 1}, vol, orient)
     assert "hole of 100 mm^2 near the pylorus, anterior half" in w[0]
+    # a good view with that hole, where the stomach touches gas outside it: the hole is named with its cause
+    w = plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, {"grade": "good"}, vol, orient, 0.03)
+    assert len(w) == 1 and w[0].startswith("the view has holes (100 mm^2 near the pylorus, anterior half): 3.0 %")
+    assert plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, {"grade": "good"}, vol, orient,
+                                 0.001) == []
+
+
+def test_gas_contact_fraction_finds_gas_against_the_lumen():
+    from StomachUnfoldLib.plausibility import gas_contact_fraction
+
+    g = np.arange(40) - 20.0
+    z, y, x = np.meshgrid(g, g, g, indexing="ij")
+    lumen = x ** 2 + y ** 2 + z ** 2 <= 12.0 ** 2
+    ct = np.where(lumen, -1000, 40).astype(np.int16)       # a wall all round: no contact
+    crop = Volume(ct, np.ones(3), np.zeros(3), np.eye(3))
+    assert gas_contact_fraction(crop, lumen, -500.0) == 0.0
+    ct[:, :, 32:] = -1000                                   # colon gas against the +x side, no wall between
+    frac = gas_contact_fraction(crop.with_array(ct), lumen, -500.0)
+    assert 0.0 < frac < 0.05
 
 
 def test_names_of_nearby_rings_do_not_stack():
