@@ -52,20 +52,22 @@ class Centerline:
         return cKDTree(self.points_lps).query(p.reshape(-1, 3))[1].reshape(p.shape[:-1])
 
 
-def in_openings(points_lps, centerline_lps, margin_mm: float = 0.0, radius_mm: float = OPENING_RADIUS_MM
-                ) -> np.ndarray:
+def in_openings(points_lps, centerline_lps, margin_mm: float = 0.0, radius_mm: float = OPENING_RADIUS_MM,
+                nearest: np.ndarray | None = None) -> np.ndarray:
     """Which points (N,3, LPS mm) of the inner wall lie in the cardia or pylorus opening.
 
     A point is in an opening when its nearest centreline point (LPS mm) is an end point, it lies more than
     ``margin_mm`` behind the plane through that end (normal: the end's tangent), and it is within ``radius_mm`` of
     the end point, or OPENING_TUBE_FACTOR times the end point's distance from the nearest of ``points_lps`` when that
-    is larger (the whole end of a tube). The one rule the methods trim by and the quality judge leaves out.
+    is larger (the whole end of a tube). The rule the isometric method trims by and the quality judge leaves out
+    (the peers keep their end planes, so their views lack the wall behind them).
+    ``nearest``: each point's nearest centreline index, when already known.
     """
     pts = np.asarray(points_lps, float).reshape(-1, 3)
     cl = np.asarray(centerline_lps, float)
     if len(cl) < 3 or not len(pts):
         return np.zeros(len(pts), bool)
-    _, k = cKDTree(cl).query(pts)
+    k = cKDTree(cl).query(pts)[1] if nearest is None else np.asarray(nearest)
     out = np.zeros(len(pts), bool)
     for end, t, sign in ((0, cl[1] - cl[0], -1.0), (len(cl) - 1, cl[-1] - cl[-2], 1.0)):
         t = t / max(float(np.linalg.norm(t)), 1e-12)

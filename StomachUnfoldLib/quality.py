@@ -88,12 +88,12 @@ def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, 
 
         cl = np.asarray(centerline_lps, float)
         kk, jj, ii = np.nonzero(edge)
-        keep = ~in_openings(pts, cl)
+        _, near = cKDTree(cl).query(pts)
+        keep = ~in_openings(pts, cl, nearest=near)
         edge[kk[~keep], jj[~keep], ii[~keep]] = False
         lab, _ = ndimage.label(edge, structure=np.ones((3, 3, 3), bool))
-        pts, kk, jj, ii = pts[keep], kk[keep], jj[keep], ii[keep]
+        pts, kk, jj, ii, near = pts[keep], kk[keep], jj[keep], ii[keep], near[keep]
         comp = lab[kk, jj, ii]
-        _, near = cKDTree(cl).query(pts)
         inner = (near > 0) & (near < len(cl) - 1)
         pts = pts[np.isin(comp, np.unique(comp[inner]))]
     if len(pts) > max_points:

@@ -673,7 +673,7 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     arc = np.asarray(cl.arclength_mm, float)
     # the judge's rule (quality.mucosa_points): the cardia and pylorus openings about the centreline's end points
     _, kc = cKDTree(P).query(v)
-    beyond = in_openings(v, P, margin_mm)
+    beyond = in_openings(v, P, margin_mm, nearest=kc)
     for end in (0, len(P) - 1):
         # no cap beyond this end (a closed end of the lumen at its point): open a small hole around the end point
         side = (kc == end) & beyond
