@@ -275,3 +275,23 @@ def test_the_boundary_term_shrinks_the_folds_peeled_at_the_pyloric_end(tiny_run,
     plain = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
                    UnfoldParameters(method="isometric", wall_thickness_mm=4.0, quality=False))
     assert res.report["method"]["hidden_fold_mm2"] < 0.9 * plain.report["method"]["hidden_fold_mm2"]  # 1176 against 1465 mm^2
+
+
+def test_boundary_straightening_acts_only_where_asked():
+    from StomachUnfoldLib.methods.isometric import _boundary_second_difference
+
+    nu = nv = 6
+    f = _grid(nu, nv)
+    nv_all = nu * nv
+    U, V = np.meshgrid(np.arange(nu, dtype=float), np.arange(nv, dtype=float), indexing="ij")
+    only = (U.ravel() >= 3)                                   # the boundary's half at u >= 3
+    full = _boundary_second_difference(f, nv_all).toarray()
+    half = _boundary_second_difference(f, nv_all, only).toarray()
+    touched = np.flatnonzero(np.abs(half).sum(1) > 0)
+    assert len(touched) and U.ravel()[touched].min() >= 2     # rows: the chosen vertices and their neighbours
+    assert np.abs(full).sum() > np.abs(half).sum() > 0
+    # moving a boundary vertex at u = 1 (away from the chosen half) changes the cost only without the restriction
+    x = U.ravel().copy()
+    y = x.copy()
+    y[1 * nv] -= 0.5
+    assert (y @ full @ y) != pytest.approx(x @ full @ x) and (y @ half @ y) == pytest.approx(x @ half @ x)
