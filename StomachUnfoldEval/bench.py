@@ -893,10 +893,11 @@ def family_markdown(rows: list[dict]) -> list[str]:
 
 
 def _merge(old: dict, rows: list[dict], full: dict | None, meta: dict, parts) -> tuple[list[dict], dict | None, dict]:
-    """Rows of an earlier results.json with those of this run put in place by name (new names appended)."""
-    mine = {r["name"]: r for r in rows}
+    """Rows of an earlier results.json with those of this run put in place by group and name (new ones appended;
+    one name can be a row of several parts, e.g. ``bent-small/kappa=0.2`` of ``kappa`` and of ``sweep``)."""
+    mine = {(r.get("group"), r["name"]): r for r in rows}
     run = {"date": meta["date"], "parts": list(parts), "cases": len(rows), "wall_seconds": meta["wall_seconds"]}
-    merged = [mine.pop(r["name"], r) for r in old["cases"]] + list(mine.values())
+    merged = [mine.pop((r.get("group"), r["name"]), r) for r in old["cases"]] + list(mine.values())
     return merged, full or old.get("full_size"), {**old["meta"], "merged": old["meta"].get("merged", []) + [run]}
 
 

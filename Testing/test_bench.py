@@ -90,6 +90,12 @@ def test_merge_replaces_rows_by_name_and_keeps_the_rest():
     assert full == old["full_size"] and meta["date"] == "then"
     assert meta["merged"] == [{"date": "now", "parts": ["real"], "cases": 2, "wall_seconds": 1.0}]
     assert "rerun on now with --merge" in bench._markdown(rows, None, {**meta, "machine": {"cpus": 2, "platform": "x"}}, [])
+    # one name in two parts (kappa and sweep): each row replaces its own
+    old = {"meta": {}, "cases": [{"name": "k", "group": "kappa", "seconds": 1.0}, {"name": "k", "group": "sweep", "seconds": 2.0}]}
+    rows, _, _ = bench._merge(old, [{"name": "k", "group": "sweep", "seconds": 5.0},
+                                    {"name": "k", "group": "kappa", "seconds": 4.0}], None, {"date": "now", "wall_seconds": 1.0},
+                              ("kappa", "sweep"))
+    assert [(r["group"], r["seconds"]) for r in rows] == [("kappa", 4.0), ("sweep", 5.0)]
 
 
 def test_family_cases_tune_and_held_out_seeds_every_method_on_each():
