@@ -263,10 +263,10 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     from .plausibility import gas_contact_fraction, hidden_fold_warnings, plausibility_warnings
 
     orient = result.orientation() if params.quality else None
-    gas = None
-    if result.report.quality and result.report.quality.get("hole_area_fraction", 0.0) > 0:  # what the holes touch
-        gas = gas_contact_fraction(prep.crop, prep.lumen, params.air_threshold_hu)
-        result.report.quality["lumen_gas_contact_fraction"] = gas
+    def gas():  # what the view's holes touch: computed only when a hole part is there to explain (0.5 s full size)
+        g = gas_contact_fraction(prep.crop, prep.lumen, params.air_threshold_hu)
+        result.report.quality["lumen_gas_contact_fraction"] = g
+        return g
     result.report.warnings += plausibility_warnings(
         ct, prep.cardia_lps, prep.pylorus_lps, (prep.air_info or {}).get("volume_ml"), result.report.quality,
         out.unfolded, orient, gas)

@@ -90,14 +90,18 @@ def hidden_fold_warnings(folds: list[dict], unfolded: Volume, orient: dict | Non
 
 def plausibility_warnings(ct: Volume, cardia_lps, pylorus_lps, lumen_ml: float | None, quality: dict | None,
                           unfolded: Volume | None = None, orient: dict | None = None,
-                          gas_contact: float | None = None) -> list[str]:
+                          gas_contact=None) -> list[str]:
     """Warnings (plain sentences) on a finished run: lumen under MIN_STOMACH_ML (mL), a point (LPS mm) on the CT's
     first or last slice, a grade of fair or worse with its failure parts and where they lie on the view, and holes
-    in the view where the lumen touches gas outside it (``gas_contact``: :func:`gas_contact_fraction`)."""
+    in the view where the lumen touches gas outside it (``gas_contact``: :func:`gas_contact_fraction`'s share, or a
+    callable giving it, called only when the view has a hole part)."""
     out = []
-    if (gas_contact or 0.0) >= GAS_CONTACT_WARN and unfolded is not None and quality \
-            and quality.get("grade") not in ("fair", "bad"):
-        holes = [p for p in failure_regions(unfolded, orient) if p["kind"] == "hole"]
+    parts = failure_regions(unfolded, orient) if unfolded is not None and quality else []
+    if any(p["kind"] == "hole" for p in parts) and callable(gas_contact):
+        gas_contact = gas_contact()
+    gas_contact = gas_contact if isinstance(gas_contact, float) else None
+    if (gas_contact or 0.0) >= GAS_CONTACT_WARN and quality and quality.get("grade") not in ("fair", "bad"):
+        holes = [p for p in parts if p["kind"] == "hole"]
         if holes:
             where = "; ".join(f"{p['area_mm2']:.0f} mm^2 {p['where']}" for p in holes)
             out.append(f"the view has holes ({where}): {100 * gas_contact:.1f} % of the stomach's boundary touches gas "
@@ -114,7 +118,6 @@ def plausibility_warnings(ct: Volume, cardia_lps, pylorus_lps, lumen_ml: float |
             out.append(f"the {name} point lies on the {which} slice of the scan: the stomach is probably cut off "
                        "by the scan range, so its end is missing from the view")
     if quality and quality.get("grade") in ("fair", "bad"):
-        parts = failure_regions(unfolded, orient) if unfolded is not None else []
         txt = "; ".join(f"{p['kind']} of {p['area_mm2']:.0f} mm^2 {p['where']}" for p in parts)
         bent = quality.get("bent_area_fraction") or 0.0
         if bent > 0:
