@@ -263,6 +263,7 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     from .plausibility import gas_contact_fraction, hidden_fold_warnings, plausibility_warnings
 
     orient = result.orientation() if params.quality else None
+
     def gas():  # what the view's holes touch: computed only when a hole part is there to explain (0.5 s full size)
         g = gas_contact_fraction(prep.crop, prep.lumen, params.air_threshold_hu)
         result.report.quality["lumen_gas_contact_fraction"] = g

@@ -75,7 +75,7 @@ def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, 
     moved onto the lumen's boundary (:func:`onto_wall`).
 
     With the centreline, points in the cardia and pylorus openings (``centerline.in_openings``, the rule the
-    methods trim by) are left out, and so is what they cut off: a gas-filled oesophagus or duodenum beyond them
+    isometric method trims by) are left out, and so is what they cut off: a gas-filled oesophagus or duodenum beyond them
     (pieces of the wall with no point nearest to an inner centreline point).
     """
     lum = lumen_crop.array.astype(bool)
@@ -95,7 +95,8 @@ def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, 
         pts, kk, jj, ii, near = pts[keep], kk[keep], jj[keep], ii[keep], near[keep]
         comp = lab[kk, jj, ii]
         inner = (near > 0) & (near < len(cl) - 1)
-        pts = pts[np.isin(comp, np.unique(comp[inner]))]
+        if inner.any():
+            pts = pts[np.isin(comp, np.unique(comp[inner]))]
     if len(pts) > max_points:
         pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
     return onto_wall(pts, lumen_crop)
