@@ -278,20 +278,19 @@ def test_the_boundary_term_shrinks_the_folds_peeled_at_the_pyloric_end(tiny_run,
 
 
 def test_boundary_straightening_acts_only_where_asked():
-    from StomachUnfoldLib.methods.isometric import _boundary_second_difference
-
-    nu = nv = 6
-    f = _grid(nu, nv)
-    nv_all = nu * nv
+    # a flat 8 x 8 grid with a bump on its left (u = 0) and right (u = 7) sides: straightened only where asked
+    nu = nv = 8
     U, V = np.meshgrid(np.arange(nu, dtype=float), np.arange(nv, dtype=float), indexing="ij")
-    only = (U.ravel() >= 3)                                   # the boundary's half at u >= 3
-    full = _boundary_second_difference(f, nv_all).toarray()
-    half = _boundary_second_difference(f, nv_all, only).toarray()
-    touched = np.flatnonzero(np.abs(half).sum(1) > 0)
-    assert len(touched) and U.ravel()[touched].min() >= 2     # rows: the chosen vertices and their neighbours
-    assert np.abs(full).sum() > np.abs(half).sum() > 0
-    # moving a boundary vertex at u = 1 (away from the chosen half) changes the cost only without the restriction
-    x = U.ravel().copy()
-    y = x.copy()
-    y[1 * nv] -= 0.5
-    assert (y @ full @ y) != pytest.approx(x @ full @ x) and (y @ half @ y) == pytest.approx(x @ half @ x)
+    rest = np.stack([U.ravel(), V.ravel(), np.zeros(nu * nv)], 1)
+    left, right = 0 * nv + 4, (nu - 1) * nv + 4
+    rest[left, 0] -= 0.6
+    rest[right, 0] += 0.6
+    f = _grid(nu, nv)
+    only = rest[:, 0] >= 4.0                                  # the right half's boundary
+    uv_all, _ = arap(rest, f, rest[:, :2].copy(), max_iter=200, tol=1e-12, boundary_weight=50.0)
+    uv_half, _ = arap(rest, f, rest[:, :2].copy(), max_iter=200, tol=1e-12, boundary_weight=50.0, boundary_only=only)
+
+    def bump(uv, i, side):  # how far the bump still stands out of the line of its two neighbours (mm)
+        return side * (uv[i, 0] - 0.5 * (uv[i - 1, 0] + uv[i + 1, 0]))
+    assert bump(uv_all, right, 1) < 0.3 and bump(uv_all, left, -1) < 0.3       # both straightened
+    assert bump(uv_half, right, 1) < 0.3 and bump(uv_half, left, -1) > 0.45    # only the right one
