@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..centerline import in_openings
+from ..centerline import OPENING_RADIUS_MM, in_openings
 from ..correspondence import MapCorrespondence
 from ..errors import AnatomyError, SimulationError
 from ..frontend import timed_stage
@@ -50,7 +50,9 @@ BOUNDARY_WEIGHT = 2000.0
 #: ... on the boundary vertices nearest the centreline beyond this fraction of its length from the cardia (the
 #: pyloric half, where the canal flares). Nearer the cardia, where the opening is a small hole in the side of the
 #: fundus, straightening it only compressed the mucosa around it (tuning seeds 0, 2, 3, 12, 14, 18, 20, 29: visible
-#: 99.09 -> 99.35 %, x bound 1.68 -> 1.56 against the whole boundary; 0.3 and 0.7 did the same)
+#: 99.09 -> 99.35 %, x bound 1.68 -> 1.56 against the whole boundary; 0.3 and 0.7 did the same). When the cardia
+#: end is a tube's end (its end point more than OPENING_RADIUS_MM from the wall, as in the fixed J phantom, 32 mm;
+#: the random stomachs' cardia points lie 3.5-6 mm from it) the whole boundary is straightened, as that end flares too.
 BOUNDARY_FROM = 0.5
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
@@ -776,7 +778,9 @@ class IsometricFlattening(Method):
             t1 = time.perf_counter()
             pairs = distance_terms(cut.v, cut.f)
             t_pairs = time.perf_counter() - t1
-            bonly = cut.near >= BOUNDARY_FROM * (len(cut.Pd) - 1)  # the pyloric half's boundary vertices
+            # the pyloric half's boundary vertices; all of them when the cardia end is a tube's end, not a side opening
+            bonly = ((cut.near >= BOUNDARY_FROM * (len(cut.Pd) - 1))
+                     | (float(prep.centerline.radius_mm[0]) > OPENING_RADIUS_MM))
             uv, info = arap(cut.v, cut.f, uv0, progress=report, pairs=pairs, boundary_weight=BOUNDARY_WEIGHT,
                             boundary_only=bonly)
             info.update(geodesic_pairs=int(len(pairs[2])), geodesic_seconds=t_pairs)
