@@ -52,7 +52,7 @@ BOUNDARY_WEIGHT = 2000.0
 #: fundus, straightening it only compressed the mucosa around it (tuning seeds 0, 2, 3, 12, 14, 18, 20, 29: visible
 #: 99.09 -> 99.35 %, x bound 1.68 -> 1.56 against the whole boundary; 0.3 and 0.7 did the same). When the cardia
 #: end is a tube's end (its end point more than OPENING_RADIUS_MM from the wall, as in the fixed J phantom, 32 mm;
-#: the random stomachs' cardia points lie 3.5-6 mm from it) the whole boundary is straightened, as that end flares too.
+#: the random stomachs' cardia points lie 3.5-6.8 mm from it) the whole boundary is straightened, as that end flares too.
 BOUNDARY_FROM = 0.5
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
