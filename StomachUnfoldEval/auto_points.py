@@ -111,10 +111,10 @@ def point_benchmark(out_dir: str, quick: bool = False, size: str = "tiny", draw=
                 rows.append(dict(r, group=group))
     summary = {}
     for group, seeds in groups:
+        if not seeds:
+            continue
         for source in ("gas", "total", "total_v1"):
             rs = [r for r in rows if r["group"] == group and r["source"] == source]
-            if not seeds:
-                continue
             ok = [r for r in rs if r["ok"]]
             summary[f"{group}/{source}"] = {
                 "volumes": len(rs), "failed": len(rs) - len(ok),

@@ -440,10 +440,11 @@ def _pylorus_past_tail(region: np.ndarray, ct_c: Volume, P: np.ndarray, tip: int
 def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
     """Cardia and pylorus guesses (LPS mm) from the shape of a stomach region (gas or label) on a crop.
 
-    The fundus top is the region's most superior thick voxel; the pylorus the far end of the region from it (the
-    first voxel back along the geodesic at least ``PYLORUS_DEPTH_MM`` from the region's edge); the cardia the
-    medial side of the fundus dome (its support point toward the patient's right, slightly posterior and up),
-    ``CARDIA_DEPTH_MM`` inside.
+    The fundus top is the region's most superior thick voxel; the pylorus lies at the far end of the region from it,
+    where the lumen widens to the pyloric canal (:func:`_pylorus_past_tail`; else the first voxel back along the
+    geodesic at least ``PYLORUS_DEPTH_MM`` from the region's edge); the cardia on the medial side of the fundus dome
+    where the oesophagus leaves (:func:`_oesophagus_probe`, or the base of a thin gas tube), ``CARDIA_DEPTH_MM``
+    inside.
     """
     edt = distance_mm(region, ct_c.spacing)
     kk, jj, ii = np.nonzero(region)
@@ -520,8 +521,7 @@ def _shape_points(ct_c: Volume, region: np.ndarray, gas: bool = True) -> dict:
         c_conf *= 0.5
         ev.append(f"no fundus dome (widest {radius:.0f} mm): unsure of the cardia")
     return {"cardia": cardia, "pylorus": pyl, "cardia_confidence": c_conf, "pylorus_confidence": p_conf,
-            "evidence": ev, "details": {"cardia_tissue": tube, "cardia_margin": margin, "gas_tube": gas_tube is not None,
-                                        "tail_mm": tail_mm, "radius_mm": radius, "length_mm": length}}
+            "evidence": ev}
 
 
 # ---------------------------------------------------------------------------------------------- from the gas

@@ -96,7 +96,9 @@ def plausibility_warnings(ct: Volume, cardia_lps, pylorus_lps, lumen_ml: float |
     in the view where the lumen touches gas outside it (``gas_contact``: :func:`gas_contact_fraction`'s share, or a
     callable giving it, called only when the view has a hole part)."""
     out = []
-    parts = failure_regions(unfolded, orient) if unfolded is not None and quality else []
+    # the regions behind the grade's failure parts (none to look for when it counted none)
+    parts = (failure_regions(unfolded, orient) if unfolded is not None and quality
+             and quality.get("failure_parts", 0) > 0 else [])
     if any(p["kind"] == "hole" for p in parts) and callable(gas_contact):
         gas_contact = gas_contact()
     gas_contact = gas_contact if isinstance(gas_contact, float) else None

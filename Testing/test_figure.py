@@ -233,10 +233,10 @@ def test_plausibility_warnings():
                               "failure_parts": 1}, vol, orient)
     assert "hole of 100 mm^2 near the pylorus, anterior half" in w[0]
     # a good view with that hole, where the stomach touches gas outside it: the hole is named with its cause
-    w = plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, {"grade": "good"}, vol, orient, 0.03)
+    good = {"grade": "good", "failure_parts": 1}
+    w = plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, good, vol, orient, 0.03)
     assert len(w) == 1 and w[0].startswith("the view has holes (100 mm^2 near the pylorus, anterior half): 3.0 %")
-    assert plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, {"grade": "good"}, vol, orient,
-                                 0.001) == []
+    assert plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, good, vol, orient, 0.001) == []
 
 
 def test_gas_contact_fraction_finds_gas_against_the_lumen():
