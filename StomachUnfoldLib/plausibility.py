@@ -21,8 +21,10 @@ def gas_contact_fraction(crop: Volume, lumen: np.ndarray, air_hu: float) -> floa
     resolves between them (a whole-organ label reaching into it, or a wall thinner than the voxels)."""
     from scipy import ndimage
 
+    from .preprocessing import lumen_edge
+
     lum = np.asarray(lumen, bool)
-    edge = lum & ~ndimage.binary_erosion(lum, border_value=1)
+    edge = lumen_edge(lum)
     n = int(edge.sum())
     if n == 0:
         return 0.0

@@ -18,7 +18,7 @@ from .geometry import Volume, lps_to_ras
 from .volume_file import FileArray, PackedMask
 
 __all__ = ["distance_mm", "snap_to_region", "air_region", "fluid_below_level", "lumen_from_mask", "wall_region", "bounding_box",
-           "BelowThreshold", "MAX_STOMACH_ML"]
+           "lumen_edge", "BelowThreshold", "MAX_STOMACH_ML"]
 
 #: Air regions larger than this (mL) are not a stomach (lungs, bowel, outside air).
 MAX_STOMACH_ML = 4000.0
@@ -157,6 +157,13 @@ def _check_inside(volume: Volume, p: np.ndarray, name: str) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- snapping
+def lumen_edge(lumen: np.ndarray) -> np.ndarray:
+    """Lumen voxels (bool (k, j, i)) with a face neighbour outside the lumen: its boundary, the mucosa's voxels. The
+    array's own border does not count as outside (a lumen cut by the crop or the scan has no wall there)."""
+    lum = np.asarray(lumen, bool)
+    return lum & ~ndimage.binary_erosion(lum, border_value=1)
+
+
 def snap_to_region(mask: np.ndarray, volume: Volume, point_lps, max_distance_mm: float = 20.0,
                    name: str = "point") -> np.ndarray:
     """LPS centre (mm) of the True voxel of ``mask`` nearest to ``point_lps`` (LPS mm), within max_distance_mm.

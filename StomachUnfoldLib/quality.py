@@ -11,6 +11,7 @@ import numpy as np
 from scipy import ndimage
 
 from .geometry import Volume
+from .preprocessing import lumen_edge
 from .view import first_hit
 
 __all__ = ["layer_runs", "overlap_fraction", "visible_points", "mucosa_points", "onto_wall", "surface_distortion",
@@ -79,7 +80,7 @@ def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, 
     (pieces of the wall with no point nearest to an inner centreline point).
     """
     lum = lumen_crop.array.astype(bool)
-    edge = lum & ~ndimage.binary_erosion(lum, border_value=1)
+    edge = lumen_edge(lum)
     pts = lumen_crop.voxel_lps(edge)
     if centerline_lps is not None and len(centerline_lps) > 2:
         from scipy.spatial import cKDTree

@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 
 from .errors import AnatomyError, SimulationError
 from .geometry import Volume
+from .preprocessing import lumen_edge
 from .progress import Progress
 
 INSIDE_MM = 2.0         # how far into the lumen (mm) each depth profile starts
@@ -157,7 +158,7 @@ def inner_surface(lumen: np.ndarray, crop: Volume, max_vertices: int, mask_given
     """Iso-surface (LPS mm vertices, triangles) of the inner wall (see surface_field), <= ~max_vertices."""
     from .isosurface import isosurface
 
-    n_edge = int(np.count_nonzero(lumen & ~ndimage.binary_erosion(lumen, border_value=1)))
+    n_edge = int(np.count_nonzero(lumen_edge(lumen)))
     field, level = surface_field(crop, lumen, mask_given)
     sm = np.pad(field, 2, constant_values=np.float32(1e4 if not mask_given else 0.0))
     del field  # one crop-sized float field at a time
