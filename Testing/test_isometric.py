@@ -294,3 +294,38 @@ def test_boundary_straightening_acts_only_where_asked():
         return side * (uv[i, 0] - 0.5 * (uv[i - 1, 0] + uv[i + 1, 0]))
     assert bump(uv_all, right, 1) < 0.3 and bump(uv_all, left, -1) < 0.3       # both straightened
     assert bump(uv_half, right, 1) < 0.3 and bump(uv_half, left, -1) > 0.45    # only the right one
+
+
+def test_a_map_that_pinches_a_notch_shut_gives_way_to_the_whole_boundary_straightened():
+    # a 40 x 20 mm sheet with a 4 mm wide notch cut down from its top edge (the cardia's opening with the incision
+    # running off it); map A presses the notch's neck shut (a slot inside the outline), map B keeps it open
+    from types import SimpleNamespace
+
+    from StomachUnfoldLib.methods.isometric import _settle, largest_defect_mm2
+
+    nu, nv = 41, 21
+    U, V = np.meshgrid(np.arange(nu, dtype=float), np.arange(nv, dtype=float), indexing="ij")
+    rest = np.stack([U.ravel(), V.ravel(), np.zeros(nu * nv)], 1)
+    f = _grid(nu, nv)
+    c = rest[f].mean(1)
+    f = f[~((np.abs(c[:, 0] - 20.0) < 2.0) & (c[:, 1] > 4.0))]      # the notch: x 18-22 mm, y 4-20 mm
+    used = np.unique(f)
+    remap = np.full(len(rest), -1)
+    remap[used] = np.arange(len(used))
+    rest, f = rest[used], remap[f]
+    x, y = rest[:, 0], rest[:, 1]
+    d = np.abs(x - 20.0)
+    shift = 2.0 * np.clip(1.0 - (d - 2.0) / 8.0, 0, 1) * np.clip((y - 13.0) / 4.0, 0, 1) * (d >= 2.0)
+    pinched = np.stack([x - np.sign(x - 20.0) * shift, y], 1)        # the neck's two sides meet at x = 20 mm
+    s = 0.5
+    assert largest_defect_mm2(pinched, f, s) > 25.0 and largest_defect_mm2(rest[:, :2], f, s) < 25.0
+    cut = SimpleNamespace(v=rest, f=f)
+    info = {}
+    asked = []
+    uv, f_keep, f_fold = _settle(cut, (pinched, lambda: asked.append(1) or rest[:, :2].copy(), None, None), s, info)
+    assert asked and info["flat_map_used"] == "whole boundary straightened" and info["flat_defect_mm2"] < 25.0
+    np.testing.assert_allclose(uv, rest[:, :2], atol=1e-9)
+    # when the first map has no slot, the others are not computed
+    info, asked = {}, []
+    _settle(cut, (rest[:, :2].copy(), lambda: asked.append(1) or pinched, None, None), s, info)
+    assert not asked and info["flat_map_used"] == "converged"

@@ -790,7 +790,11 @@ class IsometricFlattening(Method):
                 fb = None                      # a small fold: peeled off the converged map
             plain = lambda: arap(cut.v, cut.f, uv0, boundary_weight=BOUNDARY_WEIGHT,  # noqa: E731 (no terms)
                                  boundary_only=bonly)[0]
-            uv, f_keep, f_fold = _settle(cut, (uv, fb, plain), prep.pixel_mm, info)
+            # the whole boundary straightened, the cardia's opening too: it pries open a notch whose sides the map
+            # pressed together, which would show the opening as a slot inside the mucosa (tried only then)
+            whole = None if bonly.all() else (lambda: arap(cut.v, cut.f, uv0, pairs=pairs,  # noqa: E731
+                                                            boundary_weight=BOUNDARY_WEIGHT)[0])
+            uv, f_keep, f_fold = _settle(cut, (uv, whole, fb, plain), prep.pixel_mm, info)
             hidden = cut.v[np.unique(f_fold)] if len(f_fold) else None  # the peeled folds' mucosa: not on the view
             info["hidden_folds"] = hidden_folds(cut.v, f_fold, f_keep)
             info["hidden_fold_mm2"] = float(triangle_frames(cut.v, f_fold)[1].sum()) if len(f_fold) else 0.0
@@ -817,8 +821,8 @@ class IsometricFlattening(Method):
 def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarray]:
     """Untangle a flat map (uv mm) and peel its flips and folds; returns (uv, kept triangles).
 
-    ``candidates`` = (the converged map, the crossing-free early iterate or None, a callable giving the plain ARAP
-    map without distance terms). The first is taken unless, after peeling, it keeps a defect the judge would count as
+    ``candidates`` = (the converged map, a callable giving the map with the whole boundary straightened or None,
+    the crossing-free early iterate or None, a callable giving the plain ARAP map without distance terms). The first is taken unless, after peeling, it keeps a defect the judge would count as
     a failure part (a hole inside the outline or a fold still covered twice, over HOLE_MM2 mm^2); then the next ones
     are tried, and the one with the smallest defect is kept.
     """
@@ -827,7 +831,7 @@ def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarr
         cand = cand() if callable(cand) else cand
         if cand is None:
             continue
-        is_fb = ("converged", "crossing-free iterate", "plain ARAP")[n]
+        is_fb = ("converged", "whole boundary straightened", "crossing-free iterate", "plain ARAP")[n]
         u, _, flipped = untangle(cand, cut.f)
         f_keep, n_peel = peel_boundary(cut.v, cut.f, u)
         f_keep, n_over, f_fold = peel_overlaps(f_keep, u, return_dropped=True)
