@@ -329,3 +329,21 @@ def test_a_map_that_pinches_a_notch_shut_gives_way_to_the_whole_boundary_straigh
     info, asked = {}, []
     _settle(cut, (rest[:, :2].copy(), lambda: asked.append(1) or pinched, None, None), s, info)
     assert not asked and info["flat_map_used"] == "converged"
+
+
+def test_a_large_fold_is_solved_again_with_the_boundary_held_straighter(tiny_run, monkeypatch):
+    import StomachUnfoldLib.methods.isometric as iso
+
+    ct, truth, res = tiny_run
+    m = res.report["method"]
+    first, again = m["fold_retry_mm2"]            # the tiny J hides 3 % of its wall: the retry ran
+    assert first == pytest.approx(m["hidden_fold_mm2"]) and m["boundary_weight"] == iso.BOUNDARY_WEIGHT
+    assert 0 < again < first                       # it hides less, but not under half: not kept
+    run = lambda: unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),  # noqa: E731
+                         UnfoldParameters(method="isometric", wall_thickness_mm=4.0, quality=False)).report["method"]
+    monkeypatch.setattr(iso, "FOLD_RETRY_GAIN", 0.9)
+    kept = run()
+    assert kept["boundary_weight"] == iso.BOUNDARY_WEIGHT * iso.FOLD_RETRY_FACTOR
+    assert kept["hidden_fold_mm2"] == pytest.approx(again, rel=1e-6)
+    monkeypatch.setattr(iso, "FOLD_RETRY_FRACTION", 1.0)
+    assert "fold_retry_mm2" not in run()
