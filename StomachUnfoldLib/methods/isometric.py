@@ -47,14 +47,6 @@ HOLE_MM2 = 25.0
 #: the hidden fold area fell from a median of 160 mm^2 to 0 on the eight, the median marker-pair distortion ratio
 #: stayed 1.6x the bound (seeds 12 and 18: 1.5 -> 1.8x and 1.1 -> 1.2x, hiding 630 -> 270 and 570 -> 110 mm^2).
 BOUNDARY_WEIGHT = 2000.0
-#: When the flat map still peels folds over this fraction of the wall, it is solved again with the boundary weight
-#: FOLD_RETRY_FACTOR times higher, and that map is kept if it hides under FOLD_RETRY_GAIN as much (without a larger
-#: hole; the tiny J: 1176 -> 666 mm^2, not kept).
-#: The stronger weight hides less everywhere but costs length distortion (tuning seeds 8, 24, 26 at 15000 against
-#: 2000: folds 427, 283, 524 -> 0 mm^2, x bound 1.79, 1.47, 1.23 -> 2.03, 1.78, 1.48), so it is kept for those maps.
-FOLD_RETRY_FRACTION = 0.01
-FOLD_RETRY_FACTOR = 7.5
-FOLD_RETRY_GAIN = 0.5
 #: ... on the boundary vertices nearest the centreline beyond this fraction of its length from the cardia (the
 #: pyloric half, where the canal flares). Nearer the cardia, where the opening is a small hole in the side of the
 #: fundus, straightening it only compressed the mucosa around it (tuning seeds 0, 2, 3, 12, 14, 18, 20, 29: visible
@@ -62,6 +54,18 @@ FOLD_RETRY_GAIN = 0.5
 #: end is a tube's end (its end point more than OPENING_RADIUS_MM from the wall, as in the fixed J phantom, 32 mm;
 #: the random stomachs' cardia points lie 3.5-6.8 mm from it) the whole boundary is straightened, as that end flares too.
 BOUNDARY_FROM = 0.5
+#: When the flat map still peels folds over FOLD_RETRY_FRACTION of the wall (a flap of the pyloric canal's flare), it
+#: is solved again with the boundary weight FOLD_RETRY_FACTOR times higher on the boundary beyond FOLD_RETRY_FROM of
+#: the centreline from the cardia, and that map is kept if it hides under FOLD_RETRY_GAIN as much, with no larger
+#: hole (the tiny J: 1176 -> 666 mm^2, not kept). A straighter boundary costs length distortion, so it is kept for
+#: those maps. Tuning seeds 8, 24, 26 and 112 (folds 427, 283, 524, 433 mm^2, lying 0.73-1.0 along the centreline):
+#: 15000 on the whole pyloric half hid 0, 0, 0, 24 mm^2 at x bound 1.79, 1.47, 1.23, 1.40 -> 2.03, 1.78, 1.48, 1.46;
+#: from 0.6 of the centreline 0, 0, 0, 25 mm^2 at 2.15, 1.61, 1.37, 1.39; from 0.7 about the same; from 0.8 it missed
+#: three of the four folds. 0.6 keeps a margin before where the folds begin.
+FOLD_RETRY_FRACTION = 0.01
+FOLD_RETRY_FACTOR = 7.5
+FOLD_RETRY_GAIN = 0.5
+FOLD_RETRY_FROM = 0.6
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
 #: landmarks on the cut surface whose pairwise geodesic distances (10-80 mm) the flat map also keeps (ARAP alone
@@ -796,7 +800,8 @@ class IsometricFlattening(Method):
             if fold_mm2 > FOLD_RETRY_FRACTION * whole_mm2:
                 # a large flap folded over the map (the pyloric canal's flare): the boundary held straighter hides less
                 w2 = BOUNDARY_WEIGHT * FOLD_RETRY_FACTOR
-                uv2, f_keep2, f_fold2, info2 = _flat_map(cut, uv0, pairs, bonly, prep.pixel_mm, w2, None)
+                b2 = bonly & (cut.near >= FOLD_RETRY_FROM * (len(cut.Pd) - 1))
+                uv2, f_keep2, f_fold2, info2 = _flat_map(cut, uv0, pairs, b2, prep.pixel_mm, w2, None)
                 fold2 = float(triangle_frames(cut.v, f_fold2)[1].sum()) if len(f_fold2) else 0.0
                 no_worse = info2["flat_defect_mm2"] <= max(HOLE_MM2, info["flat_defect_mm2"])
                 if fold2 < FOLD_RETRY_GAIN * fold_mm2 and no_worse:
