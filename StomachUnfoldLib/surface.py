@@ -537,8 +537,7 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
     nj = int(np.ceil(uv[:, 1].max() / s)) + 2
     if ni * nj > 25_000_000:
         raise SimulationError(f"the flattened surface spans {ni} x {nj} pixels: the conformal map degenerated")
-    tri, bary, hits = rasterise(uv, f, (nj, ni), s, progress)
-    tri, bary = _rim(uv, f, tri, bary, s)
+    tri, bary, hits = view_raster(uv, f, (nj, ni), s, progress)
     covered = tri >= 0
     depths, k0, nk = depth_axis(s, w)
     tt = tri[covered]
@@ -555,6 +554,15 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
     info = {"size_ij": [ni, nj], "depth_samples_k": nk, "spacing_mm": s,
             "param_overlap_pixel_fraction": float((hits > 1).sum() / max(int(covered.sum()), 1))}
     return vol, to_unfolded, to_original, mesh, info
+
+
+def view_raster(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float, prog: Progress | None = None):
+    """The pixels (j, i; pixel s mm, centres at (i*s, j*s) mm) a flat map (uv mm) covers in the view, as
+    :func:`rasterise` gives them and extended by the outline's rim and closed cracks (:func:`_rim`): returns
+    (triangle id per pixel, -1 none; barycentrics; triangles holding the pixel centre strictly inside)."""
+    tri, bary, hits = rasterise(uv, f, shape_ji, s, prog or (lambda fraction: None))
+    tri, bary = _rim(uv, f, tri, bary, s)
+    return tri, bary, hits
 
 
 def _rim(uv, f, tri, bary, s):

@@ -915,17 +915,18 @@ def _place_folds(folds: list[dict], vol, to_unfolded) -> None:
 
 def largest_defect_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
     """Area (mm^2) of the largest region of a flat map (uv mm, pixel s mm) that no triangle covers inside its outline
-    (a hole) or that two triangles cover (a fold left after peeling): what the judge counts as a failure part."""
-    from ..surface import rasterise
+    (a hole) or that two triangles cover (a fold left after peeling): what the judge counts as a failure part.
+
+    The outline is the view's (``surface.view_raster``): its rim of half a pixel closes the mouth of a notch whose
+    sides lie within a pixel, and the judge then sees the notch as a hole (a slot inside the mucosa)."""
+    from ..surface import view_raster
 
     q = uv - uv.min(0) + s
     ni, nj = int(np.ceil(q[:, 0].max() / s)) + 2, int(np.ceil(q[:, 1].max() / s)) + 2
     if ni * nj > 25_000_000 or not len(f):
         return 0.0
-    tri, _, hits = rasterise(q, f, (nj, ni), s, lambda fraction: None)
+    tri, _, hits = view_raster(q, f, (nj, ni), s)   # as the view covers it: with the outline's rim, cracks closed
     covered = tri >= 0
-    covered |= ndimage.binary_closing(covered, iterations=1) & ndimage.binary_erosion(
-        ndimage.binary_fill_holes(covered), iterations=1)          # one-pixel pinholes the raster's rim fills
     # a pixel centre on an edge shared inside one layer is strictly inside none of its triangles: close those lines
     folds = ndimage.binary_closing(hits > 1, structure=np.ones((3, 3), bool), iterations=1) & covered
     defect = (ndimage.binary_fill_holes(covered) & ~covered) | folds
