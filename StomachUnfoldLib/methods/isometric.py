@@ -6,7 +6,9 @@ Stages: the inner wall's iso-surface (``surface.inner_surface``), either trimmed
 cardia and pylorus openings (``"whole"``: keeps the fundus dome); a cut along the incision line (on the whole
 surface a Dijkstra path on the mesh's edges from opening to opening, its vertices duplicated) makes a disc; the
 flat map starts from the tube's conformal map (or LSCM with two pins) and is relaxed by ARAP local/global
-iterations (cotangent Laplacian factorised once, per-triangle closest rotations, free boundary); the flat map is
+iterations (cotangent Laplacian factorised once, per-triangle closest rotations, free boundary, the pyloric half's
+boundary held straight; a map whose outline encloses a slot is solved again with the whole boundary straight, and
+one that still peels a large fold with the pyloric end's boundary held straighter); the flat map is
 turned so that the mucosa faces +k and the cardia->pylorus axis runs along +i, not rescaled; the unfolded volume is
 sampled along the vertex normals (``surface.sample_flat_map``). Expected behaviour: lengths and areas kept where
 the surface is developable (a tube, a bent tube), curvature of the dome and the bends spread evenly over the map,
