@@ -319,6 +319,18 @@ def test_a_map_that_pinches_a_notch_shut_gives_way_to_the_whole_boundary_straigh
     pinched = np.stack([x - np.sign(x - 20.0) * shift, y], 1)        # the neck's two sides meet at x = 20 mm
     s = 0.5
     assert largest_defect_mm2(pinched, f, s) > 25.0 and largest_defect_mm2(rest[:, :2], f, s) < 25.0
+    # a neck left 0.3 mm open (under a pixel): the raster alone keeps a channel of pixel centres to the outside,
+    # but the view's half-pixel rim closes it, so the judge would see a slot, and so does the check
+    from scipy import ndimage
+
+    from StomachUnfoldLib.surface import rasterise
+
+    near_shut = np.stack([x - np.sign(x - 20.0) * shift * 0.925, y], 1)
+    q = near_shut - near_shut.min(0) + s
+    shape = (int(np.ceil(q[:, 1].max() / s)) + 2, int(np.ceil(q[:, 0].max() / s)) + 2)
+    raw = rasterise(q, f, shape, s, lambda fraction: None)[0] >= 0
+    assert (ndimage.binary_fill_holes(raw) & ~raw).sum() * s * s < 25.0
+    assert largest_defect_mm2(near_shut, f, s) > 25.0
     cut = SimpleNamespace(v=rest, f=f)
     info = {}
     asked = []
