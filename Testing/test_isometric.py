@@ -301,7 +301,7 @@ def test_a_map_that_pinches_a_notch_shut_gives_way_to_the_whole_boundary_straigh
     # running off it); map A presses the notch's neck shut (a slot inside the outline), map B keeps it open
     from types import SimpleNamespace
 
-    from StomachUnfoldLib.methods.isometric import _settle, largest_defect_mm2
+    from StomachUnfoldLib.methods.isometric import largest_defect_mm2, settle_flat_map
 
     nu, nv = 41, 21
     U, V = np.meshgrid(np.arange(nu, dtype=float), np.arange(nv, dtype=float), indexing="ij")
@@ -334,12 +334,13 @@ def test_a_map_that_pinches_a_notch_shut_gives_way_to_the_whole_boundary_straigh
     cut = SimpleNamespace(v=rest, f=f)
     info = {}
     asked = []
-    uv, f_keep, f_fold = _settle(cut, (pinched, lambda: asked.append(1) or rest[:, :2].copy(), None, None), s, info)
+    straightened = lambda: asked.append(1) or rest[:, :2].copy()  # noqa: E731
+    uv, f_keep, f_fold = settle_flat_map(cut, (pinched, straightened, None, None), s, info)
     assert asked and info["flat_map_used"] == "whole boundary straightened" and info["flat_defect_mm2"] < 25.0
     np.testing.assert_allclose(uv, rest[:, :2], atol=1e-9)
     # when the first map has no slot, the others are not computed
     info, asked = {}, []
-    _settle(cut, (rest[:, :2].copy(), lambda: asked.append(1) or pinched, None, None), s, info)
+    settle_flat_map(cut, (rest[:, :2].copy(), lambda: asked.append(1) or pinched, None, None), s, info)
     assert not asked and info["flat_map_used"] == "converged"
 
 

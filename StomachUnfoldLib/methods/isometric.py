@@ -36,8 +36,8 @@ __all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "l
 
 MAX_MESH_VERTICES = 20000
 #: fraction of doubly covered pixels of the final ARAP map above which the latest crossing-free iterate is offered
-#: as a fallback to ``_settle`` (which still keeps the converged map when peeling its fold leaves no defect the judge
-#: counts: with the distance terms an early iterate is far from converged, e.g. tuning seed 29 at 5.3x the
+#: as a fallback to ``settle_flat_map`` (which still keeps the converged map when peeling its fold leaves no defect
+#: the judge counts: with the distance terms an early iterate is far from converged, e.g. tuning seed 29 at 5.3x the
 #: flat-layout bound against 1.56x converged and peeled)
 OVERLAP_TOLERANCE = 0.005
 #: a hole or a doubly covered region of the flat map larger than this (mm^2) is a failure part for the judge
@@ -833,8 +833,8 @@ class IsometricFlattening(Method):
 
 
 def _flat_map(cut, uv0, pairs, bonly, s: float, weight: float, report):
-    """The flat map (uv mm) of the cut surface with boundary weight ``weight``, untangled and peeled (see _settle):
-    returns (uv, kept triangles, peeled fold triangles, info)."""
+    """The flat map (uv mm) of the cut surface with boundary weight ``weight``, untangled and peeled (see
+    settle_flat_map): returns (uv, kept triangles, peeled fold triangles, info)."""
     uv, info = arap(cut.v, cut.f, uv0, progress=report, pairs=pairs, boundary_weight=weight, boundary_only=bonly)
     fb = info.pop("fallback_uv")
     info["flat_overlap_fraction"] = _overlap_fraction(uv, cut.f, s)
@@ -845,11 +845,11 @@ def _flat_map(cut, uv0, pairs, bonly, s: float, weight: float, report):
     # together, which would show the opening as a slot inside the mucosa (tried only then)
     whole = None if bonly.all() else (lambda: arap(cut.v, cut.f, uv0, pairs=pairs,  # noqa: E731
                                                     boundary_weight=weight)[0])
-    uv, f_keep, f_fold = _settle(cut, (uv, whole, fb, plain), s, info)
+    uv, f_keep, f_fold = settle_flat_map(cut, (uv, whole, fb, plain), s, info)
     return uv, f_keep, f_fold, info
 
 
-def _settle(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def settle_flat_map(cut, candidates, s: float, info: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Untangle a flat map (uv mm) and peel its flips and folds; returns (uv, kept and peeled-fold triangles).
 
     ``candidates`` = (the converged map, a callable giving the map with the whole boundary straightened or None,
