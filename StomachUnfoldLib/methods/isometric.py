@@ -54,7 +54,8 @@ BOUNDARY_WEIGHT = 2000.0
 #: fundus, straightening it only compressed the mucosa around it (tuning seeds 0, 2, 3, 12, 14, 18, 20, 29: visible
 #: 99.09 -> 99.35 %, x bound 1.68 -> 1.56 against the whole boundary; 0.3 and 0.7 did the same). When the cardia
 #: end is a tube's end (its end point more than OPENING_RADIUS_MM from the wall, as in the fixed J phantom, 32 mm;
-#: the random stomachs' cardia points lie 3.5-6.8 mm from it) the whole boundary is straightened, as that end flares too.
+#: the random stomachs' cardia points lie 3.5-6.8 mm from it) the whole boundary is straightened, as that end flares
+#: too.
 BOUNDARY_FROM = 0.5
 #: When the flat map still peels folds over FOLD_RETRY_FRACTION of the wall (a flap of the pyloric canal's flare), it
 #: is solved again with the boundary weight FOLD_RETRY_FACTOR times higher on the boundary beyond FOLD_RETRY_FROM of
@@ -796,24 +797,24 @@ class IsometricFlattening(Method):
             bonly = ((cut.near >= BOUNDARY_FROM * (len(cut.Pd) - 1))
                      | (float(prep.centerline.radius_mm[0]) > OPENING_RADIUS_MM))
             uv, f_keep, f_fold, info = _flat_map(cut, uv0, pairs, bonly, prep.pixel_mm, BOUNDARY_WEIGHT, report)
-            whole_mm2 = float(triangle_frames(cut.v, cut.f)[1].sum())
-            fold_mm2 = float(triangle_frames(cut.v, f_fold)[1].sum()) if len(f_fold) else 0.0
+            whole_mm2, fold_mm2 = _area_mm2(cut.v, cut.f), _area_mm2(cut.v, f_fold)
             info["boundary_weight"] = BOUNDARY_WEIGHT
             if fold_mm2 > FOLD_RETRY_FRACTION * whole_mm2:
                 # a large flap folded over the map (the pyloric canal's flare): the boundary held straighter hides less
                 w2 = BOUNDARY_WEIGHT * FOLD_RETRY_FACTOR
                 b2 = bonly & (cut.near >= FOLD_RETRY_FROM * (len(cut.Pd) - 1))
                 uv2, f_keep2, f_fold2, info2 = _flat_map(cut, uv0, pairs, b2, prep.pixel_mm, w2, None)
-                fold2 = float(triangle_frames(cut.v, f_fold2)[1].sum()) if len(f_fold2) else 0.0
+                fold2 = _area_mm2(cut.v, f_fold2)
                 no_worse = info2["flat_defect_mm2"] <= max(HOLE_MM2, info["flat_defect_mm2"])
+                retry = [fold_mm2, fold2]
                 if fold2 < FOLD_RETRY_GAIN * fold_mm2 and no_worse:
-                    uv, f_keep, f_fold, info = uv2, f_keep2, f_fold2, dict(info2, boundary_weight=w2)
-                info["fold_retry_mm2"] = [fold_mm2, fold2]
+                    uv, f_keep, f_fold, info, fold_mm2 = uv2, f_keep2, f_fold2, dict(info2, boundary_weight=w2), fold2
+                info["fold_retry_mm2"] = retry
             info.update(geodesic_pairs=int(len(pairs[2])), geodesic_seconds=t_pairs)
             hidden = cut.v[np.unique(f_fold)] if len(f_fold) else None  # the peeled folds' mucosa: not on the view
             info["hidden_folds"] = hidden_folds(cut.v, f_fold, f_keep)
-            info["hidden_fold_mm2"] = float(triangle_frames(cut.v, f_fold)[1].sum()) if len(f_fold) else 0.0
-            info["hidden_fold_fraction"] = info["hidden_fold_mm2"] / max(whole_mm2, 1e-9)  # of the whole cut-open wall
+            info["hidden_fold_mm2"] = fold_mm2
+            info["hidden_fold_fraction"] = fold_mm2 / max(whole_mm2, 1e-9)  # of the whole cut-open wall
             if info["peeled_triangles"] or info["peeled_overlap_triangles"]:
                 cut, uv = _with_faces(cut, f_keep, uv)
             uv, flipped_frac = orient_rigid(uv, cut, prep.pixel_mm)
@@ -830,6 +831,11 @@ class IsometricFlattening(Method):
         section = {"lumen_fluid_fraction": fluid, **cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
                    "flipped_triangle_fraction": flipped_frac, "start_map_seconds": t_init}
         return Unfolding(vol, MapCorrespondence(fwd, inv), mesh, section, warnings, seconds)
+
+
+def _area_mm2(v: np.ndarray, f: np.ndarray) -> float:
+    """Total area (mm^2) of triangles f of a mesh (v LPS mm); 0 for none."""
+    return float(triangle_frames(v, f)[1].sum()) if len(f) else 0.0
 
 
 def _flat_map(cut, uv0, pairs, bonly, s: float, weight: float, report):
