@@ -6,8 +6,8 @@ import pytest
 
 from StomachUnfoldEval.phantom import make_phantom
 from StomachUnfoldLib.errors import Cancelled
-from StomachUnfoldLib.methods.isometric import (arap, boundary_self_intersects, cut_along_path, stretch_stats,
-                                                untangle)
+from StomachUnfoldLib.methods.isometric import (arap, boundary_self_intersects, cut_along_path, limit_stretch,
+                                                stretch_stats, untangle)
 from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
 from StomachUnfoldLib.quality import mucosa_points
 from StomachUnfoldLib.surface import signed_area_2d
@@ -140,6 +140,9 @@ def test_tiny_phantom_grade_and_distortion(tiny_run):
     assert q["visible_fraction"] >= 0.95
     assert q["inverted_fraction"] == 0.0
     assert m["edge_ratio_max"] < 1.5 and q["broken_springs_fraction"] == 0.0
+    # ARAP left a few boundary triangles stretched over 1.5x; the strain limit relieved them (4 -> 0 here)
+    assert m["stretched_triangles_before"] > 0 and m["stretched_triangles"] == 0
+    assert m["stretch_max"] <= 1.5 and q["max_stretch"] <= 1.5
     assert m["euler_characteristic"] == 1 and m["boundary_loops"] == 1
     assert res.report["unfolded_volume"]["direction"] == np.eye(3).tolist()
 
@@ -360,3 +363,26 @@ def test_a_large_fold_is_solved_again_with_the_boundary_held_straighter(tiny_run
     assert kept["hidden_fold_mm2"] == pytest.approx(again, rel=1e-6)
     monkeypatch.setattr(iso, "FOLD_RETRY_FRACTION", 1.0)
     assert "fold_retry_mm2" not in run()
+
+
+def test_the_strain_limit_relieves_a_stretched_boundary_and_leaves_the_rest():
+    # a flat 2 mm grid in 3D, its exact flat map, one boundary vertex pulled 2.4 mm outwards: its triangles 2.2x
+    nu = nv = 15
+    g = np.stack(np.meshgrid(np.arange(nu) * 2.0, np.arange(nv) * 2.0, indexing="ij"), -1).reshape(-1, 2)
+    v = np.c_[g, np.zeros(len(g))]
+    f = _grid(nu, nv)
+    uv = g.copy()
+    pulled = 7 * nv + 0                                         # the middle of the side v = 0
+    uv[pulled, 1] -= 2.4
+    assert stretch_stats(v, f, uv)["stretch_max"] > 2.0
+    out, info = limit_stretch(v, f, uv)
+    st = stretch_stats(v, f, out)
+    assert info["stretched_triangles_before"] > 0 and info["stretched_triangles"] == 0
+    assert st["stretch_max"] <= 1.5 and st["edges_over_1p5"] == 0.0
+    assert np.all(np.sign(signed_area_2d(out, f)) == np.sign(signed_area_2d(uv, f)))     # nothing flipped
+    far = np.linalg.norm(g - g[pulled], axis=1) > 8.0
+    assert np.allclose(out[far], uv[far])                       # only the neighbourhood moved
+    assert 0 < info["stretch_move_mm"] < 2.4
+    # a map within the limit comes back as it was
+    same, info2 = limit_stretch(v, f, g)
+    assert np.array_equal(same, g) and info2["stretched_triangles_before"] == 0 and info2["stretch_move_mm"] == 0.0

@@ -31,7 +31,7 @@ from ..surface import (compact, cut_surface, inner_surface, largest_component, o
 from . import Method, Unfolding, register
 
 __all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "largest_defect_mm2",
-           "triangle_frames", "cot_laplacian", "stretch_stats", "cut_along_path", "open_surface", "taubin_smooth",
+           "triangle_frames", "cot_laplacian", "stretch_stats", "limit_stretch", "cut_along_path", "open_surface", "taubin_smooth",
            "IsoSurface", "MAX_MESH_VERTICES"]
 
 MAX_MESH_VERTICES = 20000
@@ -69,6 +69,13 @@ FOLD_RETRY_FRACTION = 0.01
 FOLD_RETRY_FACTOR = 7.5
 FOLD_RETRY_GAIN = 0.5
 FOLD_RETRY_FROM = 0.6
+#: no triangle of the flat map is left stretched over this factor (largest singular value of its Jacobian: the
+#: issue's bound on springs and triangles); ``limit_stretch`` relieves the few that ARAP leaves on the free boundary
+STRETCH_LIMIT = 1.5
+#: ... aiming that much under the limit, so rounding does not leave a triangle at the limit
+STRETCH_MARGIN = 0.98
+STRETCH_AIM = 0.96
+STRETCH_SWEEPS = 100
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
 #: landmarks on the cut surface whose pairwise geodesic distances (10-80 mm) the flat map also keeps (ARAP alone
@@ -483,6 +490,85 @@ def stretch_stats(v: np.ndarray, f: np.ndarray, uv: np.ndarray) -> dict:
             "edge_ratio_max": float(r.max()), "edges_over_1p5": float(np.mean(r > 1.5))}
 
 
+def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | None = None,
+                  sweeps: int | None = None) -> tuple[np.ndarray, dict]:
+    """Strain-limit a flat map (V,2 mm) of a mesh (v LPS mm, f): relieve the triangles stretched over ``limit`` (s1).
+
+    ARAP spreads the surface's curvature evenly, but leaves a few triangles by the free boundary stretched 1.5-2.2x
+    along it (where the boundary is held straight). Each sweep moves the vertices of every triangle over the limit
+    towards its own shape with its stretch clamped (the closest Jacobian with s1 <= limit, about its centroid;
+    compression is left), averaged over each vertex's triangles (position-based strain limiting, as for cloth). A
+    move that would flip a triangle is undone. Where a whole band is stretched close to the limit, the stretch is
+    pushed along it and some triangles stay over. The map is returned unchanged if its free boundary would come to
+    cross itself or more edges (springs) would be longer than ``limit`` times their rest length. Returns (uv mm, info: triangles over the limit before and after, sweeps, largest move in mm).
+    """
+    limit = STRETCH_LIMIT if limit is None else float(limit)
+    sweeps = STRETCH_SWEEPS if sweeps is None else int(sweeps)
+    goal, aim = limit * STRETCH_MARGIN, limit * STRETCH_AIM
+    x, area = triangle_frames(v, f)
+    good = area > 1e-10 * max(float(np.median(area)), 1e-12) if len(f) else np.zeros(0, bool)
+    fg, xg = f[good], x[good]
+    Ainv = np.linalg.inv(np.stack([xg[:, 1] - xg[:, 0], xg[:, 2] - xg[:, 0]], -1))   # (n,2,2) rest edges^-1
+    xc = xg - xg.mean(1, keepdims=True)                                              # rest shape about its centroid
+    uv0 = np.asarray(uv, float)
+    out = uv0.copy()
+    nv = len(out)
+    sign0 = np.sign(signed_area_2d(out, fg))
+    incident = np.bincount(fg.ravel(), minlength=nv)
+    vt_ptr = np.concatenate([[0], np.cumsum(incident)])          # vertex -> its triangles (CSR)
+    vt_idx = np.argsort(fg.ravel(), kind="stable") // 3
+
+    def jacobians(t):
+        """Jacobians (n,2,2) and largest singular values of the triangles t of the current map."""
+        y = out[fg[t]]
+        J = np.stack([y[:, 1] - y[:, 0], y[:, 2] - y[:, 0]], -1) @ Ainv[t]
+        fro = np.sum(J * J, axis=(1, 2))
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        return J, np.sqrt(0.5 * (fro + np.sqrt(np.maximum(fro * fro - 4 * det * det, 0.0))))
+
+    s1 = jacobians(np.arange(len(fg)))[1]
+    before = int(np.sum(s1 > limit))
+    sweep = 0
+    for sweep in range(1, sweeps + 1):
+        bad = np.flatnonzero(s1 > goal)
+        if not len(bad):
+            break
+        J = jacobians(bad)[0]
+        U, S, Vt = np.linalg.svd(J)
+        M = U @ (np.minimum(S, aim)[:, :, None] * Vt)                     # the closest Jacobian within the limit
+        y = out[fg[bad]]
+        d = (y.mean(1, keepdims=True) + np.einsum("nij,nkj->nki", M, xc[bad]) - y).reshape(-1, 2)
+        idx = fg[bad].ravel()
+        vs = np.unique(idx)
+        step = np.stack([np.bincount(idx, d[:, k], nv)[vs] for k in range(2)], 1) / incident[vs][:, None]
+        near = np.unique(np.concatenate([vt_idx[vt_ptr[i]:vt_ptr[i + 1]] for i in vs]))   # triangles that move
+        old = out[vs].copy()
+        out[vs] += step
+        undone = np.zeros(len(vs), bool)
+        for _ in range(3):                                                 # undo the moves that turn a triangle
+            flip = np.sign(signed_area_2d(out, fg[near])) != sign0[near]
+            if not flip.any():
+                break
+            undone |= np.isin(vs, fg[near[flip]])
+            out[vs[undone]] = old[undone]
+        s1[near] = jacobians(near)[1]
+        if undone.all():
+            break
+    moved = float(np.max(np.linalg.norm(out - uv0, axis=1))) if nv else 0.0
+    after = int(np.sum(s1 > limit))
+    bedges, e = _boundary_edges(f), _edges(f)
+    l0 = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1) * limit
+
+    def long_edges(u):
+        return int(np.sum(np.linalg.norm(u[e[:, 0]] - u[e[:, 1]], axis=1) > l0))
+
+    if moved > 0 and ((boundary_self_intersects(out, bedges) and not boundary_self_intersects(uv0, bedges))
+                      or long_edges(out) > long_edges(uv0)):
+        out, after, moved = uv0.copy(), before, 0.0       # never a crossing boundary or more springs over the limit
+    return out, {"stretched_triangles_before": before, "stretched_triangles": after, "stretch_sweeps": sweep,
+                 "stretch_move_mm": moved}
+
+
 def orient_rigid(uv: np.ndarray, cut, s: float) -> tuple[np.ndarray, float]:
     """Mirror/rotate a flat map (V,2 mm) so the mucosa faces +k and cardia->pylorus runs along +i; no rescaling.
 
@@ -817,6 +903,8 @@ class IsometricFlattening(Method):
             info["hidden_fold_fraction"] = fold_mm2 / max(whole_mm2, 1e-9)  # of the whole cut-open wall
             if info["peeled_triangles"] or info["peeled_overlap_triangles"]:
                 cut, uv = _with_faces(cut, f_keep, uv)
+            uv, info_st = limit_stretch(cut.v, cut.f, uv)
+            info.update(info_st)
             uv, flipped_frac = orient_rigid(uv, cut, prep.pixel_mm)
             st = stretch_stats(cut.v, cut.f, uv)
         sa = signed_area_2d(uv, cut.f)
