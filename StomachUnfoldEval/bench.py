@@ -803,6 +803,7 @@ def family_summary(rows: list[dict], group: str) -> dict:
                   "ratio_to_bound_median": float(np.median(ratio)) if ratio else None,
                   "ratio_to_bound_max": float(np.max(ratio)) if ratio else None,
                   "stretched_max": float(max(x["broken_springs_fraction"] for x in q)) if q else None,
+                  **_unstretched(q),
                   "inverted_max": float(max(x["inverted_fraction"] for x in q)) if q else None,
                   "visible_not_below_every_peer": not_below_peers,
                   "length_error_mm_mean": float(np.mean(err)) if err else None,
@@ -811,6 +812,12 @@ def family_summary(rows: list[dict], group: str) -> dict:
     if zero:
         out.update(zero_click_summary(zero, rs))
     return out
+
+
+def _unstretched(q: list[dict], limit: float = 1.5) -> dict:
+    """Volumes (of quality sections q) with no spring (edge) and with no triangle stretched over ``limit`` x."""
+    return {"no_spring_over_limit": sum(x["broken_springs_fraction"] == 0 for x in q),
+            "no_triangle_over_limit": sum(x.get("max_stretch", np.inf) <= limit for x in q)}
 
 
 def zero_click_summary(zero: list[dict], two_click_rows: list[dict]) -> dict:
@@ -835,6 +842,7 @@ def zero_click_summary(zero: list[dict], two_click_rows: list[dict]) -> dict:
         "distortion_median": float(np.median(dist)) if dist else None,
         "distortion_max": float(np.max(dist)) if dist else None, "ratio_to_bound_median": None,
         "ratio_to_bound_max": None, "stretched_max": float(max(x["broken_springs_fraction"] for x in q)) if q else None,
+        **_unstretched(q),
         "inverted_max": float(max(x["inverted_fraction"] for x in q)) if q else None,
         "visible_not_below_every_peer": 0, "length_error_mm_mean": None, "length_error_mm_sd_of_means": None,
         "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None,
@@ -855,8 +863,8 @@ def family_markdown(rows: list[dict]) -> list[str]:
         L.append(f"## {title}: {n} volumes, every method on the same volumes, default parameters\n")
         L.append("| method | excellent | good or better | failed | visible median / min % | not below any peer | "
                  "markers seen | under fluid | dome | pairwise distortion median / max | x flat-layout bound "
-                 "median / max | stretched max % | inverted max % | s median |")
-        L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+                 "median / max | stretched max % | no spring / triangle over 1.5x | inverted max % | s median |")
+        L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         def f(v, fmt="{:.3f}"):
             return "" if v is None else fmt.format(v)
         for m, v in summ.items():
@@ -868,6 +876,7 @@ def family_markdown(rows: list[dict]) -> list[str]:
                      f"{v['dome_seen']}/{v['dome_total']} | {f(v['distortion_median'])} / {f(v['distortion_max'])} | "
                      f"{f(v['ratio_to_bound_median'], '{:.2f}')} / {f(v['ratio_to_bound_max'], '{:.2f}')} | "
                      f"{f(v['stretched_max'] and 100 * v['stretched_max'], '{:.1f}')} | "
+                     f"{v['no_spring_over_limit']}/{v['no_triangle_over_limit']} | "
                      f"{f(v['inverted_max'] and 100 * v['inverted_max'], '{:.2f}')} | {f(v['seconds_median'], '{:.1f}')} |")
         L.append("")
         for m, v in summ.items():

@@ -111,23 +111,28 @@ def test_family_cases_tune_and_held_out_seeds_every_method_on_each():
 
 
 def test_family_summary_counts_grades_peers_and_the_bound():
-    def row(vol, m, grade, vis, dist, bound, fluid=(1, 2)):
-        q = {"grade": grade, "visible_fraction": vis, "broken_springs_fraction": 0.0, "inverted_fraction": 0.0,
-             "failure_parts": 0,
+    def row(vol, m, grade, vis, dist, bound, fluid=(1, 2), springs=0.0, s1=1.4):
+        q = {"grade": grade, "visible_fraction": vis, "broken_springs_fraction": springs, "inverted_fraction": 0.0,
+             "failure_parts": 0, "max_stretch": s1,
              "markers": {"seen": 3, "total": 4, "by_region": {"under_fluid": list(fluid), "dome": [1, 1]},
                          "pairwise_distance_distortion": dist, "flat_bound": bound, "ratio_to_bound": dist / bound,
                          "length_error_mm": {"mean": 0.5, "sd": 1.0, "pairs": 3}}}
         return {"name": f"{vol}/{m}", "group": "stomachs-held-out", "method": m, "ok": True, "seconds": 2.0,
                 "quality": q}
     rows = [row("a", "isometric", "excellent", 0.995, 0.05, 0.04), row("a", "lscm", "good", 0.99, 0.3, 0.04),
-            row("b", "isometric", "good", 0.97, 0.08, 0.04), row("b", "lscm", "good", 0.98, 0.4, 0.04)]
+            row("b", "isometric", "good", 0.97, 0.08, 0.04, s1=1.6),
+            row("b", "lscm", "good", 0.98, 0.4, 0.04, springs=1e-4, s1=1.7)]
     s = bench.family_summary(rows, "stomachs-held-out")
+    # "no spring or triangle stretched over 1.5x", counted per volume: a triangle at 1.6x with no long edge counts
+    assert (s["isometric"]["no_spring_over_limit"], s["isometric"]["no_triangle_over_limit"]) == (2, 1)
+    assert (s["lscm"]["no_spring_over_limit"], s["lscm"]["no_triangle_over_limit"]) == (1, 1)
     assert s["isometric"]["excellent"] == 1 and s["isometric"]["good_or_better"] == 2
     assert s["isometric"]["visible_not_below_every_peer"] == 1 and s["lscm"]["visible_not_below_every_peer"] == 1
     assert s["isometric"]["ratio_to_bound_max"] == pytest.approx(2.0)
     assert s["lscm"]["under_fluid_seen"] == 2 and s["lscm"]["under_fluid_total"] == 4
     text = "\n".join(bench.family_markdown(rows))
     assert "held out: never tuned on" in text and "| isometric | 1/2 | 2/2 |" in text
+    assert "| no spring / triangle over 1.5x |" in text and " | 2/1 | " in text
 
 
 def test_zero_clicks_row_sits_beside_the_two_click_rows():
