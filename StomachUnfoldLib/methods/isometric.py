@@ -535,15 +535,18 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
 
     s1 = jacobians(np.arange(len(fg)))[1]
     before = int(np.sum(s1 > limit))
+    if not before:
+        return out, {"stretched_triangles_before": 0, "stretched_triangles": 0, "stretch_sweeps": 0,
+                     "stretch_move_mm": 0.0}
     bedges, e = _boundary_edges(f), _edges(f)
     l0 = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1) * limit
-    crossed0 = boundary_self_intersects(uv0, bedges) if before else False
+    crossed0 = boundary_self_intersects(uv0, bedges)
 
     def long_edges(u):
         return int(np.sum(np.linalg.norm(u[e[:, 0]] - u[e[:, 1]], axis=1) > l0))
 
-    long0 = long_edges(uv0) if before else 0
-    best = (before, float(s1.max()) if len(s1) else 0.0, uv0)
+    long0 = long_edges(uv0)
+    best = (before, float(s1.max()), uv0)
 
     def keep_if_better():
         """Keep the current map if it has fewer triangles over the limit (then a lower top stretch) than the best so
@@ -581,11 +584,10 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
             break
         if sweep % STRETCH_CHECK_EVERY == 0:
             keep_if_better()
-    if before:
-        keep_if_better()
+    keep_if_better()
     after, _, out = best
     out = out.copy() if out is uv0 else out
-    moved = float(np.max(np.linalg.norm(out - uv0, axis=1))) if nv else 0.0
+    moved = float(np.max(np.linalg.norm(out - uv0, axis=1)))
     return out, {"stretched_triangles_before": before, "stretched_triangles": after, "stretch_sweeps": sweep,
                  "stretch_move_mm": moved}
 
