@@ -241,36 +241,49 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         uv[:, 1] *= -1.0
     last_ok = None                             # the latest iterate whose free boundary does not cross itself
     energies = []
-    fa, fb = f[:, i1].ravel(), f[:, i2].ravel()                          # half-edge tails and heads (3F)
-    wr = w.ravel()
-    dxr = dx.reshape(-1, 2)
+    # half-edges c-major (index c * F + t: half-edge c of triangle t), each coordinate apart: contiguous sums
+    fa, fb = f[:, i1].T.ravel(), f[:, i2].T.ravel()                      # half-edge tails and heads (3F)
+    w3 = np.ascontiguousarray(w.T)                                      # (3,F)
+    dx0, dx1 = np.ascontiguousarray(dx[:, :, 0].T), np.ascontiguousarray(dx[:, :, 1].T)   # rest edges (3,F)
+    wdx0, wdx1 = w3 * dx0, w3 * dx1
+    # b_head += c, b_tail -= c for the half-edges' vectors c (3F): one sparse product (V x 3F)
+    h3 = np.arange(3 * nf)
+    ends = coo_matrix((np.r_[np.ones(3 * nf), -np.ones(3 * nf)], (np.r_[fb, fa], np.r_[h3, h3])),
+                      shape=(nv, 3 * nf)).tocsr()
+    if pairs is not None:
+        hp = np.arange(len(pa))
+        pends = coo_matrix((np.r_[np.ones(len(pa)), -np.ones(len(pa))], (np.r_[pb, pa], np.r_[hp, hp])),
+                           shape=(nv, len(pa))).tocsr()
 
     def rotations(uv):
-        """Current half-edge vectors (3F,2 mm) and the rest edges turned by each triangle's closest rotation."""
-        du = (uv[fb] - uv[fa])                                          # (3F,2) current half-edge vectors
-        wd = wr[:, None] * du
-        s00 = (wd[:, 0] * dxr[:, 0]).reshape(nf, 3).sum(1)
-        s01 = (wd[:, 0] * dxr[:, 1]).reshape(nf, 3).sum(1)
-        s10 = (wd[:, 1] * dxr[:, 0]).reshape(nf, 3).sum(1)
-        s11 = (wd[:, 1] * dxr[:, 1]).reshape(nf, 3).sum(1)
-        ang = np.arctan2(s10 - s01, s00 + s11)
-        cs, sn = np.repeat(np.cos(ang), 3), np.repeat(np.sin(ang), 3)
-        rdx = np.stack([cs * dxr[:, 0] - sn * dxr[:, 1], sn * dxr[:, 0] + cs * dxr[:, 1]], 1)
-        return du, rdx
+        """Current half-edge vectors and the rest edges turned by each triangle's closest rotation ((3,F) x, y mm)."""
+        u0, u1 = np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1])
+        du0, du1 = (u0[fb] - u0[fa]).reshape(3, nf), (u1[fb] - u1[fa]).reshape(3, nf)
+        # the closest rotation to S = sum_c w du dx^T: angle atan2(S10 - S01, S00 + S11), as (cos, sin)
+        p, q = du0 * wdx0 + du1 * wdx1, du1 * wdx0 - du0 * wdx1
+        ca, sa_ = p[0] + p[1] + p[2], q[0] + q[1] + q[2]
+        h = np.hypot(ca, sa_)
+        zero = h == 0.0
+        h[zero] = 1.0
+        cs, sn = ca / h, sa_ / h
+        cs[zero], sn[zero] = 1.0, 0.0
+        return du0, du1, cs * dx0 - sn * dx1, sn * dx0 + cs * dx1
+
+    def energy(du0, du1, r0, r1):
+        """The ARAP energy sum w |du - R dx|^2 (mm^2)."""
+        return float(np.sum(w3 * ((du0 - r0) ** 2 + (du1 - r1) ** 2)))
 
     it = 0
     for it in range(1, max_iter + 1):
-        du, rdx = rotations(uv)
-        e = float(np.sum(wr[:, None] * (du - rdx) ** 2))
+        du0, du1, r0, r1 = rotations(uv)
+        e = energy(du0, du1, r0, r1)
         # global step: L u = b, b_head += w R dx, b_tail -= w R dx
-        c = wr[:, None] * rdx
-        b = np.stack([np.bincount(fb, c[:, k], nv) - np.bincount(fa, c[:, k], nv) for k in range(2)], 1)
+        b = np.stack([ends @ (w3 * r0).ravel(), ends @ (w3 * r1).ravel()], 1)
         if pairs is not None:
             dab = uv[pb] - uv[pa]
             ln = np.maximum(np.linalg.norm(dab, axis=1), 1e-9)
             e += float(np.sum(pw * (ln - pg) ** 2))
-            t = (pw * pg / ln)[:, None] * dab
-            b += np.stack([np.bincount(pb, t[:, k], nv) - np.bincount(pa, t[:, k], nv) for k in range(2)], 1)
+            b += pends @ ((pw * pg / ln)[:, None] * dab)
         energies.append(e)
         rhs = b[keep] - col_pin[:, None] * uv[pin][None, :]
         new = uv.copy()
@@ -289,12 +302,11 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         # the free boundary came to overlap itself (a strongly bent or tapering tube wraps round): the latest map
         # without overlap, if ARAP had got far enough there, is offered to the caller
         overlap_stop, fallback = last_ok
-    du, rdx = rotations(uv)
-    e_final = float(np.sum(wr[:, None] * (du - rdx) ** 2))
+    e_final = energy(*rotations(uv))
     sa = signed_area_2d(uv, f)
     major = np.sign(np.sum(np.sign(sa[good]))) or 1.0
     flipped = int(np.sum((np.sign(sa) != major) & good))
-    total_w = float(np.sum(wr[:, None] * dxr ** 2))
+    total_w = float(np.sum(w3 * (dx0 ** 2 + dx1 ** 2)))
     return uv, {"arap_iterations": it, "arap_stopped_before_overlap": overlap_stop, "arap_energy": e_final,
                 "arap_energy_relative": e_final / max(total_w, 1e-12),
                 "arap_energy_trace": [float(e) for e in energies[:: max(1, len(energies) // 10)]],
