@@ -96,22 +96,37 @@ def _load(source: dict):
         from StomachUnfoldLib.io import read_label_volume, read_volume
 
         ct = read_volume(source["real"])
-        mask = read_label_volume(source["mask"], ct, label_value=source.get("label")) if source.get("mask") else None
-        pts = ct.voxel_lps(mask) if mask is not None else None
-        # cardia and pylorus: the ends of the label's long axis (upper end = cardia)
-        c = pts.mean(0)
-        _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
-        proj = (pts - c) @ vt[0]
-        a, b = pts[np.argmax(proj)], pts[np.argmin(proj)]
-        if a[2] < b[2]:
-            a, b = b, a
-        return ct, a, b, mask, None
+        if source.get("mask"):
+            mask = read_label_volume(source["mask"], ct, label_value=source.get("label"))
+            return (ct, *_long_axis_ends(ct.voxel_lps(mask)), mask, None)
+        # no label: the gas pocket holding the point pocket_lps (LPS mm), the lumen as the air threshold finds it
+        return (ct, *_long_axis_ends(ct.voxel_lps(_gas_pocket(ct, source["pocket_lps"]))), None, None)
     from .phantom import make_phantom
 
     kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in source.items() if not k.startswith("_")}
     ct, truth = make_phantom(**kw)
     markers = {m["id"]: m["lps"] for m in truth["markers"]}
     return ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]), None, markers
+
+
+def _long_axis_ends(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cardia and pylorus (LPS mm) for a real CT: the ends of a region's long axis (points LPS mm), upper = cardia."""
+    c = pts.mean(0)
+    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
+    proj = (pts - c) @ vt[0]
+    a, b = pts[np.argmax(proj)], pts[np.argmin(proj)]
+    return (b, a) if a[2] < b[2] else (a, b)
+
+
+def _gas_pocket(ct, point_lps, threshold_hu: float = -500.0) -> np.ndarray:
+    """The connected voxels below threshold_hu (HU) holding point_lps (LPS mm): a real CT's gas pocket (bool kji)."""
+    from scipy import ndimage
+
+    k, j, i = np.rint(ct.lps_to_index(np.asarray(point_lps, float)[None])[0][::-1]).astype(int)
+    lab, _ = ndimage.label(np.asarray(ct.array) < threshold_hu)
+    if lab[k, j, i] == 0:
+        raise ValueError(f"the benchmark's pocket point (LPS {point_lps} mm) is not in gas")
+    return lab == lab[k, j, i]
 
 
 def png_name(case_name: str) -> str:
@@ -251,7 +266,11 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
                                   "label": 6}),
                  ("real-02-slab", {"real": os.path.join(d, "02_totalseg_example_ct_dicom_slab_2mm.nii.gz"),
                                    "mask": os.path.join(d, "02_totalseg_example_ct_dicom_slab_seg117_stomach6.nii.gz"),
-                                   "label": 6})]
+                                   "label": 6}),
+                 # no label, the stomach collapsed round food: only its 24 mL anterior gas pocket (data/README.txt)
+                 # can be unfolded; the points are the pocket's long-axis ends, found from this point in it
+                 ("real-03-pocket", {"real": os.path.join(d, "03_tcia_acrin_flt_breast_001_ct_chest_abd_pelvis_"
+                                                             "4p25mm.nii.gz"), "pocket_lps": [16.6, -45.9, -493.5]})]
         for name, src in reals:
             if os.path.exists(src["real"]):
                 cases.append(Case(name, src, {"grid_size": 2, "wall_thickness_mm": 4.0}, group="real"))
@@ -746,7 +765,8 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     table("scaling-volume", "Scaling with volume size (J phantom, 5.6 mm cells; each run alone in a fresh process)")
     table("scaling-grid", "Scaling with cell size at full size (each run alone in a fresh process)")
     table("crop", "Crop size: extra margin around the stomach (each run alone in a fresh process)")
-    table("real", "Real CTs with their stomach labels (not gas-distended)")
+    table("real", "Real CTs (not gas-distended): 01 and 02 with their stomach labels, 03 only its gas pocket "
+                  "(no label)")
     table("peers", "Peers on the same phantoms (the inverted column: wall folded back along the unrolling)")
     L += family_markdown(rows)
     L += memory_markdown(rows)

@@ -351,10 +351,13 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
     k = int(min(n_landmarks, nv))
     lm = np.empty(k, np.int64)
     lm[0] = 0
-    d = np.linalg.norm(v - v[0], axis=1)
+    vc = np.ascontiguousarray(v, float)
+    d2 = np.einsum("ij,ij->i", vc - vc[0], vc - vc[0])        # squared distances (mm^2): the same farthest points
+    step = np.empty_like(vc)
     for i in range(1, k):
-        lm[i] = int(np.argmax(d))
-        d = np.minimum(d, np.linalg.norm(v - v[lm[i]], axis=1))
+        lm[i] = int(np.argmax(d2))
+        np.subtract(vc, vc[lm[i]], out=step)
+        np.minimum(d2, np.einsum("ij,ij->i", step, step), out=d2)
     D = dijkstra(G, directed=False, indices=lm, limit=pair_max_mm * 1.05)[:, lm]
     rim = np.unique(_boundary_edges(f))
     d_rim = dijkstra(G, directed=False, indices=rim, min_only=True)[lm] if len(rim) else np.full(k, np.inf)
