@@ -202,7 +202,6 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     with iterations, energy trace, flipped count).
     """
     from scipy.sparse import coo_matrix
-    from scipy.sparse.linalg import splu
 
     progress = progress or (lambda fraction: None)
     nv, nf = len(v), len(f)
@@ -223,16 +222,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     # edge vectors of the rest triangles for half-edge c: from vertex c+1 to vertex c+2
     i1, i2 = [(c + 1) % 3 for c in range(3)], [(c + 2) % 3 for c in range(3)]
     dx = x[:, i2] - x[:, i1]                                          # (F,3,2)
-    pin = int(np.argmax(np.bincount(f.ravel(), minlength=nv)))
-    keep = np.ones(nv, bool)
-    keep[pin] = False
-    Lr = L[keep][:, keep].tocsc()
-    try:
-        lu = splu(Lr, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-    except RuntimeError as e:
-        raise SimulationError(f"the ARAP system of the surface could not be factorised ({e}); the mesh is "
-                              "broken") from e
-    col_pin = L[:, pin].toarray().ravel()[keep]
+    lu, pin, keep, col_pin = _pinned_factor(L, f)
     overlap_stop = 0
     bedges = _boundary_edges(f) if injective else None
     uv = np.array(uv0, float)
@@ -246,14 +236,9 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     w3 = np.ascontiguousarray(w.T)                                      # (3,F)
     dx0, dx1 = np.ascontiguousarray(dx[:, :, 0].T), np.ascontiguousarray(dx[:, :, 1].T)   # rest edges (3,F)
     wdx0, wdx1 = w3 * dx0, w3 * dx1
-    # b_head += c, b_tail -= c for the half-edges' vectors c (3F): one sparse product (V x 3F)
-    h3 = np.arange(3 * nf)
-    ends = coo_matrix((np.r_[np.ones(3 * nf), -np.ones(3 * nf)], (np.r_[fb, fa], np.r_[h3, h3])),
-                      shape=(nv, 3 * nf)).tocsr()
-    if pairs is not None:
-        hp = np.arange(len(pa))
-        pends = coo_matrix((np.r_[np.ones(len(pa)), -np.ones(len(pa))], (np.r_[pb, pa], np.r_[hp, hp])),
-                           shape=(nv, len(pa))).tocsr()
+    # b_head += c, b_tail -= c for the half-edges' vectors c (3F): one sparse product
+    ends = _ends_matrix(fb, fa, nv)
+    pends = _ends_matrix(pb, pa, nv) if pairs is not None else None
 
     def rotations(uv):
         """Current half-edge vectors and the rest edges turned by each triangle's closest rotation ((3,F) x, y mm)."""
@@ -311,6 +296,34 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
                 "arap_energy_relative": e_final / max(total_w, 1e-12),
                 "arap_energy_trace": [float(e) for e in energies[:: max(1, len(energies) // 10)]],
                 "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum()), "fallback_uv": fallback}
+
+
+def _pinned_factor(L, f: np.ndarray):
+    """LU factors of the Laplacian L (V x V) with its most connected vertex pinned: (lu, pin, kept bool (V,), the pinned
+    column of the kept rows); SimulationError when it cannot be factorised."""
+    from scipy.sparse.linalg import splu
+
+    nv = L.shape[0]
+    pin = int(np.argmax(np.bincount(f.ravel(), minlength=nv)))
+    keep = np.ones(nv, bool)
+    keep[pin] = False
+    try:
+        lu = splu(L[keep][:, keep].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                  options={"SymmetricMode": True})
+    except RuntimeError as e:
+        raise SimulationError(f"the ARAP system of the surface could not be factorised ({e}); the mesh is "
+                              "broken") from e
+    return lu, pin, keep, L[:, pin].toarray().ravel()[keep]
+
+
+def _ends_matrix(heads: np.ndarray, tails: np.ndarray, nv: int):
+    """Sparse (V x E) matrix M with M @ c adding each edge's value c_e at its head vertex and subtracting it at its
+    tail (the right-hand side of a Laplacian system from per-edge vectors)."""
+    from scipy.sparse import coo_matrix
+
+    n = len(heads)
+    e = np.arange(n)
+    return coo_matrix((np.r_[np.ones(n), -np.ones(n)], (np.r_[heads, tails], np.r_[e, e])), shape=(nv, n)).tocsr()
 
 
 def _boundary_second_difference(f: np.ndarray, nv: int, only: np.ndarray | None = None):
