@@ -161,7 +161,13 @@ def lumen_edge(lumen: np.ndarray) -> np.ndarray:
     """Lumen voxels (bool (k, j, i)) with a face neighbour outside the lumen: its boundary, the mucosa's voxels. The
     array's own border does not count as outside (a lumen cut by the crop or the scan has no wall there)."""
     lum = np.asarray(lumen, bool)
-    return lum & ~ndimage.binary_erosion(lum, border_value=1)
+    inner = lum.copy()          # a binary erosion by the 6-neighbour cross, the border counted as lumen: by slices
+    for a in range(lum.ndim):
+        lo, hi = [slice(None)] * lum.ndim, [slice(None)] * lum.ndim
+        lo[a], hi[a] = slice(None, -1), slice(1, None)
+        inner[tuple(lo)] &= lum[tuple(hi)]
+        inner[tuple(hi)] &= lum[tuple(lo)]
+    return lum & ~inner
 
 
 def snap_to_region(mask: np.ndarray, volume: Volume, point_lps, max_distance_mm: float = 20.0,

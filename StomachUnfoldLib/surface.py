@@ -96,7 +96,8 @@ def surface_field(crop: Volume, lumen: np.ndarray, mask_given: bool) -> tuple[np
     """
     if mask_given:
         return (-1000.0 * ndimage.gaussian_filter(lumen.astype(np.float32), SURFACE_SIGMA_VOX)).astype(np.float32), -500.0
-    band = ndimage.binary_dilation(lumen, structure=np.ones((3, 3, 3), bool))
+    # the lumen dilated by a 3 x 3 x 3 box (a separable maximum filter: the same, twice as fast)
+    band = ndimage.maximum_filter(np.asarray(lumen, bool).view(np.uint8), size=3, mode="constant", cval=0) > 0
     field = np.where(band, crop.array.astype(np.float32), np.float32(200.0))
     # a little blur (1 voxel) as a CT's partial volume gives: voxel staircases would tilt the sampled surface
     field = ndimage.gaussian_filter(field, SURFACE_SIGMA_VOX)
