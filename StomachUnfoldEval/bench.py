@@ -119,14 +119,14 @@ def _long_axis_ends(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _gas_pocket(ct, point_lps, threshold_hu: float = -500.0) -> np.ndarray:
-    """The connected voxels below threshold_hu (HU) holding point_lps (LPS mm): a real CT's gas pocket (bool kji)."""
-    from scipy import ndimage
+    """The voxels below threshold_hu (HU) 6-connected to point_lps (LPS mm): a real CT's gas pocket (bool kji)."""
+    from StomachUnfoldLib.preprocessing import flood_fill
 
-    k, j, i = np.rint(ct.lps_to_index(np.asarray(point_lps, float)[None])[0][::-1]).astype(int)
-    lab, _ = ndimage.label(np.asarray(ct.array) < threshold_hu)
-    if lab[k, j, i] == 0:
+    seed = tuple(np.rint(ct.lps_to_index(np.asarray(point_lps, float)[None])[0][::-1]).astype(int))
+    gas = np.asarray(ct.array) < threshold_hu
+    if not gas[seed]:
         raise ValueError(f"the benchmark's pocket point (LPS {point_lps} mm) is not in gas")
-    return lab == lab[k, j, i]
+    return flood_fill(gas, seed)
 
 
 def png_name(case_name: str) -> str:
