@@ -1,9 +1,8 @@
 """Automatic incision line on the inner stomach wall from cardia to pylorus (Oda et al., after Suito et al.).
 
-For every centreline point a cutting direction is chosen in the cross-section plane: by default the greater
-curvature, where pathologists open a resected stomach (the convex border in the stomach's own plane: the normal
-of the centreline within its best-fit plane, on the side away from the bend); or the lesser curvature, anterior or
-posterior. A ray from the centreline along that direction meets the inner
+For every centreline point a cutting direction is chosen in the cross-section plane: by default away from
+the bend of the stomach (the greater curvature, where pathologists open a resected stomach); or toward it
+(lesser curvature), anterior or posterior. A ray from the centreline along that direction meets the inner
 wall at the incision point. Ray lengths are median-filtered along the stomach so that rugae and small
 polyps do not make the line jump, and the directions are smoothed so the line is a connected curve.
 """
@@ -22,9 +21,6 @@ __all__ = ["Incision", "cutting_directions", "compute_incision_line", "incision_
            "incision_surface_points", "SIDES"]
 
 SIDES = INCISION_SIDES  # defined once, in params
-#: the centreline's second principal extent over its first below which it has no plane of its own (nearly straight,
-#: a tube): the greater curvature is then only away from the centroid and, where the bend is weak, the patient's left
-PLANE_MIN_RATIO = 0.15
 
 
 @dataclass
@@ -56,11 +52,9 @@ def cutting_directions(points_lps, tangents, radius_mm, side: str = "greater",
                        smooth_mm: float = 15.0, spacing_mm: float = 2.0) -> np.ndarray:
     """Unit cut directions (LPS) per centreline point for the chosen side, smooth along the curve.
 
-    ``greater`` is the convex border in the stomach's plane: the normal of each tangent within the centreline's
-    best-fit plane, on the side away from the bend (the centroid); where the centreline has no plane (nearly
-    straight) or runs across it, away from the centroid and, where the bend is weak, the patient's left (+x LPS).
-    ``lesser`` is its opposite; ``anterior`` is -y and ``posterior`` +y (LPS), each made perpendicular to the
-    centreline tangent.
+    ``greater`` points away from the centre of the bend (the centroid of the centreline, and where the
+    curve is nearly straight the patient's left, +x in LPS); ``lesser`` is its opposite; ``anterior``
+    is -y and ``posterior`` +y (LPS), each made perpendicular to the centreline tangent.
     """
     if side not in SIDES:
         raise InputError(f"unknown incision side {side!r}; choose one of {', '.join(SIDES)}")
@@ -72,8 +66,7 @@ def cutting_directions(points_lps, tangents, radius_mm, side: str = "greater",
         fallback = _perpendicular(np.tile([1.0, 0.0, 0.0], (len(points_lps), 1)), tangents)
         # where the bend is weak compared with the radius, blend toward the patient's left
         w = np.clip(np.linalg.norm(d, axis=1) / np.maximum(2.0 * np.asarray(radius_mm, float), 1e-6), 0, 1)
-        d = _normalise(_normalise(d) * w[:, None] + _normalise(fallback) * (1 - w[:, None]))
-        d = _in_plane_convex_side(points_lps, tangents, d)
+        d = _normalise(d) * w[:, None] + _normalise(fallback) * (1 - w[:, None])
         if side == "lesser":
             d = -d
     else:
@@ -86,23 +79,6 @@ def cutting_directions(points_lps, tangents, radius_mm, side: str = "greater",
     sigma = max(smooth_mm / max(spacing_mm, 1e-6), 0.5)
     d = ndimage.gaussian_filter1d(d, sigma, axis=0, mode="nearest")
     return _normalise(_perpendicular(d, tangents))
-
-
-def _in_plane_convex_side(points_lps, tangents, fallback):
-    """Unit normals (LPS) of the unit tangents within the centreline's best-fit plane, all on the side away from the
-    centroid (one side for the whole curve, as the greater curvature is one border); ``fallback`` (unit, (K,3))
-    where the curve has no plane or its tangent runs along the plane's normal."""
-    centre = points_lps.mean(axis=0)
-    _, sv, vt = np.linalg.svd(points_lps - centre, full_matrices=False)
-    if len(sv) < 3 or sv[1] < PLANE_MIN_RATIO * sv[0]:
-        return fallback
-    g = np.cross(vt[2], tangents)
-    across = np.linalg.norm(g, axis=1)          # 1 in the plane, 0 along its normal
-    g = _normalise(g)
-    if np.mean(np.sum(g * (points_lps - centre), axis=1)) < 0:
-        g = -g
-    w = np.clip((across - 0.3) / 0.4, 0.0, 1.0)[:, None]
-    return _normalise(g * w + fallback * (1.0 - w))
 
 
 def _ray_lengths(lumen: np.ndarray, volume: Volume, origins, directions, max_len_mm: float) -> np.ndarray:

@@ -91,18 +91,8 @@ FLUID_FRACTION = 0.01
 #: keeps each triangle; the pairs keep the lengths a reader measures: tuning seeds 0-12, marker distortion / the
 #: flat-layout bound median 2.25 -> 1.6)
 LANDMARKS = 300
-#: weight of those distance terms against the ARAP energy (both per mm^2 of wall). It was 15 before the pairs near the
-#: rim were kept (RIM_CLEARANCE_MM) and the incision followed the convex border in the stomach's plane
-#: (``incision_line``). With both, on tuning seeds 0-29, 60 / 100 gave the marker distortion / flat-layout bound a
-#: median of 1.48 / 1.48 (17 / 18 of 30 within 1.5x), 588 / 584 of 590 markers seen, 99.46 / 99.43 % visible, against
-#: 1.58, 12, 586 and 99.43 % before; the peeled folds fell from 919 to 67 mm^2 in all. Rim pairs alone (the old
-#: incision): 15 / 40 / 100 / 250 gave 1.67 / 1.52 / 1.48 / 1.44. Checked on new tuning seeds 200-219: 1.54 -> 1.38
-PAIR_WEIGHT = 60.0
-#: a landmark pair is kept when its shortest path is this much (mm) shorter than any path by way of the boundary
-#: (the cut and the openings): beside the rim the geodesic is then still a straight line in the plane. Before,
-#: a pair was kept only when its path could not reach the rim at all (g under both ends' distances to it), which left
-#: the band along the cut, where the markers of the greater curvature lie, to ARAP alone
-RIM_CLEARANCE_MM = 1.0
+#: weight of those distance terms against the ARAP energy (both per mm^2 of wall)
+PAIR_WEIGHT = 15.0
 
 
 def _unique_rows(e: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
@@ -361,10 +351,10 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
     """Landmark vertex pairs of a mesh (LPS mm) and their geodesic distances (mm) between pair_min_mm and pair_max_mm.
 
     Landmarks by farthest-point sampling; distances by Dijkstra over the mesh's edges and its two-ring chords (the
-    chords cut the zigzag of edge paths; on a smooth surface the error is 1-3 %). Only pairs whose shortest path
-    keeps clear of the boundary are kept (shorter by RIM_CLEARANCE_MM than any path by way of a boundary vertex):
-    round an opening or along the cut the straight line in the plane is not the geodesic, and holding it to g would
-    stretch the rim. Pairs near the rim whose path runs beside it are kept. Returns (a, b, g)."""
+    chords cut the zigzag of edge paths; on a smooth surface the error is 1-3 %). Only pairs whose geodesic cannot
+    touch the boundary are kept (g under the sum of both ends' distances to it): round an opening or along the cut
+    the straight line in the plane is not the geodesic, and holding it to g would stretch the rim. Returns (a, b, g).
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
@@ -385,21 +375,13 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
         lm[i] = int(np.argmax(d2))
         np.subtract(vc, vc[lm[i]], out=step)
         np.minimum(d2, np.einsum("ij,ij->i", step, step), out=d2)
-    D = dijkstra(G, directed=False, indices=lm, limit=pair_max_mm * 1.05)
-    a, b = np.triu_indices(k, 1)
-    g = D[:, lm][a, b]
-    ok = np.isfinite(g) & (g >= pair_min_mm) & (g <= pair_max_mm)
-    a, b, g = a[ok], b[ok], g[ok]
+    D = dijkstra(G, directed=False, indices=lm, limit=pair_max_mm * 1.05)[:, lm]
     rim = np.unique(_boundary_edges(f))
-    if len(rim):
-        # the shortest path by way of the rim, min over rim vertices r of D[a, r] + D[r, b], in chunks of pairs
-        dr = D[:, rim].astype(np.float32)
-        via = np.empty(len(g), np.float32)
-        for s in range(0, len(g), 4096):
-            via[s:s + 4096] = np.min(dr[a[s:s + 4096]] + dr[b[s:s + 4096]], axis=1)
-        ok = g + RIM_CLEARANCE_MM < via
-        a, b, g = a[ok], b[ok], g[ok]
-    return lm[a], lm[b], g
+    d_rim = dijkstra(G, directed=False, indices=rim, min_only=True)[lm] if len(rim) else np.full(k, np.inf)
+    a, b = np.triu_indices(k, 1)
+    g = D[a, b]
+    ok = np.isfinite(g) & (g >= pair_min_mm) & (g <= pair_max_mm) & (g < d_rim[a] + d_rim[b])
+    return lm[a[ok]], lm[b[ok]], g[ok]
 
 
 def distance_terms(v: np.ndarray, f: np.ndarray, n_landmarks: int | None = None, weight: float | None = None):
