@@ -256,7 +256,8 @@ def test_a_peeled_fold_is_hidden_warned_and_ringed_on_the_view(tiny_run, tmp_pat
     _, truth, res = tiny_run
     m = res.report["method"]
     folds = m["hidden_folds"]
-    assert folds and m["hidden_fold_mm2"] >= sum(f["area_mm2"] for f in folds) > 25.0
+    assert folds and m["hidden_fold_mm2"] >= sum(f["area_mm2"] for f in folds) - 1e-6  # float sums in any order
+    assert sum(f["area_mm2"] for f in folds) > 25.0
     warned = [w for w in res.report["warnings"] if "fold of the flat map was peeled" in w]
     assert len(warned) == len(folds) and all(f"ring F{n}" in w for n, w in enumerate(warned, 1))
     assert all("view_ij" in f and "rim_lps" not in f for f in folds)
@@ -281,8 +282,7 @@ def test_the_boundary_term_shrinks_the_folds_peeled_at_the_pyloric_end(tiny_run,
 
 
 def test_boundary_straightening_acts_only_where_asked():
-    assert folds and m["hidden_fold_mm2"] >= sum(f["area_mm2"] for f in folds) - 1e-6  # float sums in any order
-    assert sum(f["area_mm2"] for f in folds) > 25.0
+    # a flat 8 x 8 grid with a bump on its left (u = 0) and right (u = 7) sides: straightened only where asked
     nu = nv = 8
     U, V = np.meshgrid(np.arange(nu, dtype=float), np.arange(nv, dtype=float), indexing="ij")
     rest = np.stack([U.ravel(), V.ravel(), np.zeros(nu * nv)], 1)
