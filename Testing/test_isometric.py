@@ -413,3 +413,22 @@ def test_the_strain_limit_never_leaves_more_long_springs_than_it_found():
             assert info["stretch_sweeps"] == 0 and 0 < info["stretch_solves"] <= 3
         assert b["edges_over_1p5"] <= a["edges_over_1p5"] and b["stretch_max"] <= a["stretch_max"] + 1e-9
         assert np.all(np.sign(signed_area_2d(out, f)) == np.sign(signed_area_2d(uv, f)))
+
+
+def test_the_global_strain_limit_keeps_a_mirrored_map_mirrored():
+    # the 1.6x stretched sheet mirrored (every triangle clockwise, as a flat map may come), with one inner vertex
+    # pushed almost onto its neighbour so that its triangles are squeezed over 20x: the global step alone (no sweep)
+    # relieves the stretch and leaves every triangle clockwise (taken as counter-clockwise, each would be "turned
+    # over", pushed back, and the step undone), and the squeezed ones under 20x
+    nu = nv = 12
+    g = np.stack(np.meshgrid(np.arange(nu) * 2.0, np.arange(nv) * 2.0, indexing="ij"), -1).reshape(-1, 2)
+    v, f = np.c_[g, np.zeros(len(g))], _grid(nu, nv)
+    uv = g * [-1.6, 1.0]
+    inner = 5 * nv + 5
+    uv[inner] = 0.97 * uv[inner + 1] + 0.03 * uv[inner]
+    before = np.sign(signed_area_2d(uv, f))
+    assert np.all(before == before[0]) and stretch_stats(v, f, uv)["shrink_max"] > 20
+    out, info = limit_stretch(v, f, uv, sweeps=0)
+    st = stretch_stats(v, f, out)
+    assert info["stretch_solves"] > 0 and info["stretched_triangles"] == 0 and st["stretch_max"] <= 1.5
+    assert np.all(np.sign(signed_area_2d(out, f)) == before[0]) and st["shrink_max"] < 20

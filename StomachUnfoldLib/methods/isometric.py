@@ -91,6 +91,10 @@ STRETCH_CHECK_EVERY = 10
 #: 200-219 likewise (2 volumes before), with limit_stretch 0.72 -> 0.43 s on the slowest; the sweeps then only run
 #: where the global step leaves a triangle over or is undone (a flipped triangle)
 STRETCH_SOLVES = 100
+#: ... where the global step also holds every triangle's smaller singular value (signed: negative when flipped) at
+#: least this (a triangle squeezed over 20x or turned over is pushed back to 1/19.6): without it the solve turned 3
+#: triangles over on real CT 02 (the slab), so the step was undone there and 253 triangles stayed over 1.5x
+STRETCH_SHRINK_MIN = 0.05
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
 #: landmarks on the cut surface whose pairwise geodesic distances (10-80 mm) the flat map also keeps (ARAP alone
@@ -600,13 +604,17 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
 
     # first the global solve (every triangle at once); the sweeps then finish what it leaves, or start over from the
     # input where it flipped a triangle or was not kept (a boundary crossing itself, more long springs)
-    out[:], solves = _global_strain_limit(fg, area[good], Ainv, out, goal, aim, solves)
-    if solves and np.all(np.sign(signed_area_2d(out, fg)) == sign0):
+    o = float(np.sign(np.sum(sign0)) or 1.0)                        # the map's orientation (it may be mirrored)
+    out[:], solves = _global_strain_limit(fg, area[good], Ainv, out, goal, aim, solves, o)
+    sign1 = np.sign(signed_area_2d(out, fg))
+    if solves and not np.any((sign1 != sign0) & (sign0 == o)):      # none turned over (one turned back is fine)
         s1 = jacobians(np.arange(len(fg)))[1]
         keep_if_better()
     if best[2] is uv0:
         out[:], solves = uv0, 0
         s1 = jacobians(np.arange(len(fg)))[1]
+    else:
+        sign0 = sign1                                               # the sweeps keep what the global step left
     sweep = 0
     for sweep in range(1, sweeps + 1):
         bad = np.flatnonzero(s1 > goal)
@@ -644,15 +652,16 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
 
 
 def _global_strain_limit(f: np.ndarray, area: np.ndarray, Ainv: np.ndarray, uv: np.ndarray,
-                         goal: float, aim: float, rounds: int) -> tuple[np.ndarray, int]:
+                         goal: float, aim: float, rounds: int, orientation: float = 1.0) -> tuple[np.ndarray, int]:
     """Strain limiting of a flat map (V,2 mm) by projections and one factorisation: returns (uv mm, solves).
 
     Each round clamps the Jacobian of every triangle stretched over ``goal`` to ``aim`` (its nearest Jacobian with s1
-    at most that; the others are their own target), then solves for the map closest to all the targets in the
-    area-weighted least-squares sense (the cotangent Laplacian, factorised once; a weight of 1e-6 on the current
-    map pins its position). The correction spreads over the whole sheet at once, where the sweeps push it along a
-    band one ring at a time (tuning seeds 23 and 219: 0 triangles over after 15 and 9 rounds, against 14 and 3 still
-    over after 600 sweeps). Stops when none is over ``goal`` or after ``rounds`` rounds (none: the map as it was).
+    at most that, and s2 at least STRETCH_SHRINK_MIN in the map's ``orientation``, +1 or -1; the others are their
+    own target), then solves for the map closest to all the targets in the area-weighted least-squares sense (the
+    cotangent Laplacian, factorised once; a weight of 1e-6 on the current map pins its position, then a rigid fit
+    back onto the input). The correction spreads over the whole sheet at once, where the sweeps push it along a band
+    one ring at a time (tuning seeds 23 and 219: 0 triangles over after 15 and 9 rounds, against 14 and 3 still over
+    after 600 sweeps). Stops when none is over ``goal`` or after ``rounds`` rounds (none: the map as it was).
     """
     from scipy.sparse import coo_matrix, identity
     from scipy.sparse.linalg import splu
@@ -680,11 +689,17 @@ def _global_strain_limit(f: np.ndarray, area: np.ndarray, Ainv: np.ndarray, uv: 
         J = np.stack([Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0]], -1) @ Ainv
         fro = np.sum(J * J, axis=(1, 2))
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        bad = np.sqrt(0.5 * (fro + np.sqrt(np.maximum(fro * fro - 4 * det * det, 0.0)))) > goal
+        disc = np.sqrt(np.maximum(fro * fro - 4 * det * det, 0.0))
+        s2 = np.sqrt(np.maximum(0.5 * (fro - disc), 0.0)) * np.sign(det) * orientation   # < 0: turned over
+        bad = (np.sqrt(0.5 * (fro + disc)) > goal) | (s2 < STRETCH_SHRINK_MIN)
         if not bad.any():
             return y, n
         U, S, Vt = np.linalg.svd(J[bad])
+        turned = det[bad] * orientation < 0                   # signed SVD: the target keeps the map's orientation
+        U[turned, :, 1] *= -1
+        S[turned, 1] *= -1
         S[:, 0] = np.minimum(S[:, 0], aim)
+        S[:, 1] = np.clip(S[:, 1], min(1.02 * STRETCH_SHRINK_MIN, aim), aim)
         J[bad] = U @ (S[:, :, None] * Vt)
         for c in range(2):
             y[:, c] = lu.solve(G.T @ (J[:, c, :] * sw[:, None]).ravel() + eps * y[:, c])
