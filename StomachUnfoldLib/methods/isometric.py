@@ -95,14 +95,6 @@ STRETCH_SOLVES = 100
 #: least this (a triangle squeezed over 20x or turned over is pushed back to 1/19.6): without it the solve turned 3
 #: triangles over on real CT 02 (the slab), so the step was undone there and 253 triangles stayed over 1.5x
 STRETCH_SHRINK_MIN = 0.05
-#: ``peel_boundary`` drops a boundary triangle with an edge stretched over this factor (besides flipped ones). It was
-#: 1.45, from before the strain limit relieved such triangles; that peeled 25-365 boundary triangles a volume, whose
-#: mucosa was then off the view. At 3.0 (tuning seeds 0-29 and the real CTs; 2.0 and no limit also tried): 0-20 are
-#: peeled, visible median 99.41 -> 99.56 %, 586 -> 588 markers, real CT 01 92.6 -> 93.8 % (cylindrical 93.7 %),
-#: CT 03 96.6 -> 97.7 %, still none over 1.5x; but the strain limit then moves the boundary further and 12 -> 8 of 30
-#: lie within 1.5x the flat-layout bound (median 1.57 -> 1.60). 2.0 gave the same bound count and CT 01 93.3 %; no
-#: limit turned CT 02 from good to fair (two triangles stretched over 3x kept)
-PEEL_STRETCH = 3.0
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
 #: landmarks on the cut surface whose pairwise geodesic distances (10-80 mm) the flat map also keeps (ARAP alone
@@ -451,17 +443,14 @@ def untangle(uv: np.ndarray, f: np.ndarray, rounds: int = 20) -> tuple[np.ndarra
     return uv, before, int(bad.sum())
 
 
-def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | None = None, rounds: int = 4
+def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1.45, rounds: int = 4
                   ) -> tuple[np.ndarray, int]:
     """Drop boundary triangles of a flat map that are flipped or have an edge stretched over ``limit`` (3D mm vs uv mm).
-
-    ``limit`` defaults to PEEL_STRETCH; the strain limit (``limit_stretch``) relieves the ones stretched less.
 
     A free boundary next to strongly curved wall (a cap's rim) can fold or stretch by a few triangles, and a fold of
     the smoothed surface itself leaves a flipped sliver inside; they are peeled off (the mucosa under them maps to
     their neighbours). Returns (kept triangles, number dropped).
     """
-    limit = PEEL_STRETCH if limit is None else float(limit)
     f0 = len(f)
     for _ in range(rounds):
         ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
