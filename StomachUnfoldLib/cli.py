@@ -584,7 +584,25 @@ def _on_ctrl_c(signum, frame):
     raise KeyboardInterrupt
 
 
+def _in_import(frame) -> bool:
+    """True while the interrupted code is inside an import (a frame of importlib's bootstrap on the stack)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
 def _on_signal(signum, frame):
+    if _in_import(frame):
+        # raised inside an import, a compiled module (VTK) turns it into an ImportError or is left half set up
+        # (seen once as a crash, SIGSEGV): send the signal again in 50 ms, until the import is done
+        import threading
+
+        again = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+        again.daemon = True
+        again.start()
+        return
     for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
         if s is not None:
             signal.signal(s, signal.SIG_IGN)  # a second signal must not interrupt the clean-up

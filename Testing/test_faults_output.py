@@ -213,6 +213,28 @@ def test_sighup_during_the_run_leaves_nothing(case, tmp_path):
     assert not out.exists() or os.listdir(out) == []
 
 
+def test_sigterm_inside_an_import_waits_for_the_import_to_finish(case, tmp_path):
+    # a SIGTERM raised inside an import: a compiled module (VTK) turns the exception into an ImportError (a traceback
+    # and status 1) or is left half set up (it crashed once, SIGSEGV); the command holds the signal until the import
+    # is done. Here a pure-Python module, imported while the view is drawn, sends it and then marks its end
+    (tmp_path / "slow_module.py").write_text(
+        "import os, pathlib, signal, time\nos.kill(os.getpid(), signal.SIGTERM)\ntime.sleep(0.3)\n"
+        f"pathlib.Path({str(tmp_path / 'imported')!r}).write_text('done')\n")
+    child = (f"import sys; sys.argv[0] = 'stomach-unfold'; sys.path.insert(0, {str(tmp_path)!r})\n"
+             "from StomachUnfoldLib import cli, figure\n"
+             "draw = figure.write_view\n"
+             "def write_view(*a, **k):\n    import slow_module\n    return draw(*a, **k)\n"
+             "figure.write_view = write_view\n"
+             "sys.exit(cli.main())\n")
+    out = tmp_path / "new"
+    proc = subprocess.run([sys.executable, "-c", child, "unfold", case["ct"], "--points", case["pts"], "-o", out,
+                           *FAST], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 143 and "Traceback" not in proc.stderr, (proc.returncode, proc.stderr)
+    assert "stopped by SIGTERM" in proc.stderr
+    assert (tmp_path / "imported").read_text() == "done"          # the import ran to its end first
+    assert not out.exists() or os.listdir(out) == []
+
+
 @pytest.mark.parametrize("delay", [0.03, 0.06, 0.1])  # the imports: NumPy alone took ~0.1 s
 def test_ctrl_c_while_the_command_starts_gives_one_line(case, delay):
     proc = _start("unfold", case["ct"], "--points", case["pts"], "-o", case["root"] / "never")
