@@ -605,7 +605,7 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     # first the global solve (every triangle at once); the sweeps then finish what it leaves, or start over from the
     # input where it flipped a triangle or was not kept (a boundary crossing itself, more long springs)
     o = float(np.sign(np.sum(sign0)) or 1.0)                        # the map's orientation (it may be mirrored)
-    out[:], solves = _global_strain_limit(fg, area[good], Ainv, out, goal, aim, solves, o)
+    out[:], solves = _global_strain_limit(fg, xg, Ainv, out, goal, aim, solves, o)
     sign1 = np.sign(signed_area_2d(out, fg))
     if solves and not np.any((sign1 != sign0) & (sign0 == o)):      # none turned over (one turned back is fine)
         s1 = jacobians(np.arange(len(fg)))[1]
@@ -651,38 +651,38 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
                  "stretch_solves": solves, "stretch_move_mm": moved}
 
 
-def _global_strain_limit(f: np.ndarray, area: np.ndarray, Ainv: np.ndarray, uv: np.ndarray,
+def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.ndarray,
                          goal: float, aim: float, rounds: int, orientation: float = 1.0) -> tuple[np.ndarray, int]:
     """Strain limiting of a flat map (V,2 mm) by projections and one factorisation: returns (uv mm, solves).
 
     Each round clamps the Jacobian of every triangle stretched over ``goal`` to ``aim`` (its nearest Jacobian with s1
     at most that, and s2 at least STRETCH_SHRINK_MIN in the map's ``orientation``, +1 or -1; the others are their
-    own target), then solves for the map closest to all the targets in the area-weighted least-squares sense (the
-    cotangent Laplacian, factorised once; a weight of 1e-6 on the current map pins its position, then a rigid fit
-    back onto the input). The correction spreads over the whole sheet at once, where the sweeps push it along a band
-    one ring at a time (tuning seeds 23 and 219: 0 triangles over after 15 and 9 rounds, against 14 and 3 still over
-    after 600 sweeps). Stops when none is over ``goal`` or after ``rounds`` rounds (none: the map as it was).
+    own target), then solves for the map closest to all the targets in the area-weighted least-squares sense: ARAP's
+    global step with those targets in place of rotations (the cotangent Laplacian of the rest frames x (F,3,2 mm),
+    factorised once; a weight of 1e-6 on the current map pins its position, as a peeled map can come in several
+    pieces that one pinned vertex would not hold, then a rigid fit back onto the input). The correction spreads over the
+    whole sheet at once, where the sweeps push it along a band one ring at a time (tuning seeds 23 and 219: 0
+    triangles over after 15 and 9 rounds, against 14 and 3 still over after 600 sweeps). Stops when none is over
+    ``goal`` or after ``rounds`` rounds (none: the map as it was).
     """
-    from scipy.sparse import coo_matrix, identity
+    from scipy.sparse import identity
     from scipy.sparse.linalg import splu
 
     if rounds <= 0:
         return uv, 0
     nv = len(uv)
-    g = np.zeros((len(f), 3, 2))                  # gradients of the hat functions in each triangle's rest frame
-    g[:, 1], g[:, 2] = Ainv[:, 0, :], Ainv[:, 1, :]
-    g[:, 0] = -(g[:, 1] + g[:, 2])
-    sw = np.sqrt(area)
-    rows = np.broadcast_to(2 * np.arange(len(f))[:, None, None] + np.arange(2)[None, None, :], g.shape)
-    G = coo_matrix(((g * sw[:, None, None]).ravel(), (rows.ravel(), np.broadcast_to(f[:, :, None], g.shape).ravel())),
-                   shape=(2 * len(f), nv)).tocsr()
-    N = (G.T @ G).tocsc()
-    eps = 1e-6 * float(np.mean(N.diagonal()))
+    # sum_c cot_c / 2 |M dx_c|^2 = area |M|_F^2 for any 2x2 M: the half-edge form of the area-weighted Jacobian fit
+    w = 0.5 * _half_edge_cot(x)                                          # (F,3), unclipped: the exact identity
+    L = cot_laplacian(f, w, nv)
+    eps = 1e-6 * float(np.mean(L.diagonal()))
     try:
-        lu = splu((N + eps * identity(nv)).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+        lu = splu((L + eps * identity(nv)).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                   options={"SymmetricMode": True})
     except RuntimeError:
         return uv, 0
+    i1, i2 = [(c + 1) % 3 for c in range(3)], [(c + 2) % 3 for c in range(3)]
+    dx = x[:, i2] - x[:, i1]                                             # rest half-edges c+1 -> c+2 (F,3,2)
+    ends = _ends_matrix(f[:, i2].T.ravel(), f[:, i1].T.ravel(), nv)      # half-edges c-major, as in arap
     y = np.asarray(uv, float).copy()
     for n in range(rounds):
         Y = y[f]
@@ -701,8 +701,9 @@ def _global_strain_limit(f: np.ndarray, area: np.ndarray, Ainv: np.ndarray, uv: 
         S[:, 0] = np.minimum(S[:, 0], aim)
         S[:, 1] = np.clip(S[:, 1], min(1.02 * STRETCH_SHRINK_MIN, aim), aim)
         J[bad] = U @ (S[:, :, None] * Vt)
-        for c in range(2):
-            y[:, c] = lu.solve(G.T @ (J[:, c, :] * sw[:, None]).ravel() + eps * y[:, c])
+        t = np.einsum("fij,fcj->cfi", J, dx) * w.T[:, :, None]          # weighted target half-edges (3,F,2)
+        b = np.stack([ends @ t[:, :, k].ravel() for k in range(2)], 1)
+        y = lu.solve(np.ascontiguousarray(b + eps * y))
         y = _rigid_fit(y, uv)
     return y, rounds
 
