@@ -372,6 +372,25 @@ def _level_patch(air: np.ndarray, ct: Volume, min_level_mm2: float):
     return kji[(rows == p) | (rows == p + 1)]
 
 
+def _falling_floor(depth: np.ndarray, prof: np.ndarray, n_partial: int, rel2: np.ndarray, grid: tuple) -> np.ndarray:
+    """1 where a ray's water (``depth`` voxels of its HU profile ``prof``) ends in a fall to fat: drop its last voxel.
+
+    Water never borders fat in a stomach: the wall (2 mm or more) lies between. A wall too thin to be resolved
+    between water and fat is blurred away (its voxels average to water), so the ray runs on to the fat (below
+    ``FLUID_MIN_HU``) and takes the wall in: its last voxel is that wall, not water. The flag is the 5 x 5 majority
+    over the level's rays (``rel2``: their positions on a ``grid``), so one noisy ray leaves no pit in the floor.
+    Rays ending on a rise above the water range (a resolved wall) or in the air-water partial zone (``n_partial``
+    voxels) are 0. (Two voxels on grids finer than 1.3 mm hid a bead under the fluid on a tuning stomach.)
+    """
+    rows = np.arange(len(depth))
+    after = prof[rows, np.minimum(depth, prof.shape[1] - 1)]
+    fall = ((depth > n_partial) & (depth < prof.shape[1]) & (after < FLUID_MIN_HU)).astype(np.uint8)
+    fmap = np.zeros(grid, np.uint8)
+    fmap[rel2[:, 0], rel2[:, 1]] = fall
+    major = ndimage.median_filter(fmap, size=5, mode="nearest")[rel2[:, 0], rel2[:, 1]].astype(bool)
+    return (major & (depth > n_partial)).astype(depth.dtype)
+
+
 def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, threshold_hu: float = -500.0,
                       min_level_mm2: float = 300.0, max_depth_mm: float = 120.0,
                       max_air_ratio: float = 2.0) -> tuple[np.ndarray, dict]:
@@ -455,7 +474,9 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
         return none, info  # a flat air boundary on tissue, not on water
     # the fluid's floor: the 5 x 5 median of the rays' depths (no pillar left by a ray a noise voxel stopped,
     # no spike where a ray went through a thin wall)
-    take = offs[None, :] <= np.minimum(med, np.count_nonzero(inside, axis=1))[:, None]
+    depth = np.minimum(med, np.count_nonzero(inside, axis=1))
+    depth -= _falling_floor(depth, prof, n_partial, rel2, dmap.shape)
+    take = offs[None, :] <= depth[:, None]
     take &= prof <= max_hu + 50.0  # never over a marker, calcification or contrast the median reached
     r, c = np.nonzero(take)
     along = pos[r, c] if st > 0 else (hu.shape[ax] - 1 - pos[r, c])

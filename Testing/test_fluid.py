@@ -23,10 +23,10 @@ GEOMETRIES = {
 }
 
 
-def make_ct(geometry="identity", contents="water", seed=0):
+def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0):
     """(Volume in HU, true fluid mask, true lumen mask) of the synthetic stomach; contents below the level:
     'water' (10 HU), 'gas' (none: all air), 'tissue' (50 HU: a flat air boundary on solid tissue), 'leak'
-    (water open to the posterior side of the volume)."""
+    (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm)."""
     sp, D = GEOMETRIES[geometry]
     sp = np.asarray(sp, float)
     lps_axis = np.argmax(np.abs(D), axis=0)                 # LPS axis of each of i, j, k
@@ -37,7 +37,7 @@ def make_ct(geometry="identity", contents="water", seed=0):
     P = vol.index_to_lps(np.stack([i.ravel(), j.ravel(), k.ravel()], 1))
     x, y, z = P.T
     r_in = np.sqrt((x / 42.0) ** 2 + (y / 22.0) ** 2 + (z / 20.0) ** 2)
-    r_out = np.sqrt((x / 47.0) ** 2 + (y / 27.0) ** 2 + (z / 25.0) ** 2)
+    r_out = np.sqrt((x / (42.0 + wall_mm)) ** 2 + (y / (22.0 + wall_mm)) ** 2 + (z / (20.0 + wall_mm)) ** 2)
     lumen = r_in < 1.0
     below = lumen & (y > LEVEL_Y)
     hu = np.full(len(P), -90.0, np.float32)                   # fat
@@ -121,3 +121,15 @@ def test_prepare_marks_a_lumen_with_fluid():
     assert prep.air_info["fluid_level_lps_y"] == pytest.approx(LEVEL_Y, abs=1.5)
     prep_off = prepare(ct, CARDIA, PYLORUS, UnfoldParameters(fluid_max_hu=-1000.0))
     assert prep_off.fluid_voxels == 0 and not prep_off.lumen_is_mask
+
+
+@pytest.mark.parametrize("geometry", list(GEOMETRIES))
+def test_a_thin_wall_between_water_and_fat_is_not_taken_as_water(geometry):
+    # a 2.2 mm wall, blurred, between the water (10 HU) and the fat (-90 HU) averages to water: the rays ran on to
+    # the fat and a fifth of the "fluid" was that wall; water never borders fat, so the wall's voxel is dropped
+    ct, fluid_true, lumen_true = make_ct(geometry, wall_mm=2.2)
+    lumen, _ = air_region(ct, CARDIA, PYLORUS)
+    air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    fluid = lumen & ~air
+    assert np.count_nonzero(fluid & ~lumen_true) < 0.15 * np.count_nonzero(fluid)
+    assert np.count_nonzero(fluid_true & ~fluid) < 0.02 * np.count_nonzero(fluid_true)
