@@ -378,7 +378,8 @@ def _falling_floor(depth: np.ndarray, prof: np.ndarray, n_partial: int, rel2: np
     Water never borders fat in a stomach: the wall (2 mm or more) lies between. A wall too thin to be resolved
     between water and fat is blurred away (its voxels average to water), so the ray runs on to the fat (below
     ``FLUID_MIN_HU``) and takes the wall in: its last voxel is that wall, not water. The flag is the 5 x 5 majority
-    over the level's rays (``rel2``: their positions on a ``grid``), so one noisy ray leaves no pit in the floor.
+    of the 5 x 5 window round each ray on the level's ``grid`` (``rel2``: the rays' cells; a cell with no ray counts
+    as not falling), so one noisy ray leaves no pit in the floor.
     Rays ending on a rise above the water range (a resolved wall) or in the air-water partial zone (``n_partial``
     voxels) are 0. (Two voxels on grids finer than 1.3 mm hid a bead under the fluid on a tuning stomach.)
     """
@@ -404,8 +405,9 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     about 40 HU, fat about -90 HU), stopping at the first voxel above ``max_hu``, at two in a row below the
     range or after ``max_depth_mm``. The fluid's depth below each level voxel is the 5 x 5 median of the rays'
     depths (a ray stopped by a noise voxel would leave a pillar of "wall" inside the lumen, one through a thin
-    wall a spike), less voxels over ``max_hu`` + 50 HU (a bead or calcification on the floor stays). Fluid is
-    kept only if at least half of the level has two or more water voxels under it (each ray clipped to two
+    wall a spike), less voxels over ``max_hu`` + 50 HU (a bead or calcification on the floor stays), and less
+    the last voxel where the water ends in a fall to fat (a wall too thin to resolve, :func:`_falling_floor`).
+    Fluid is kept only if at least half of the level has two or more water voxels under it (each ray clipped to two
     voxels beyond that median; an air boundary lying flat on tissue has none), and refused with a warning if
     it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
 
