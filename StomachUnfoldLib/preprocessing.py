@@ -372,23 +372,29 @@ def _level_patch(air: np.ndarray, ct: Volume, min_level_mm2: float):
     return kji[(rows == p) | (rows == p + 1)]
 
 
+def _level_median(values: np.ndarray, rel2: np.ndarray, grid: tuple, mode: str) -> np.ndarray:
+    """The 5 x 5 median of a per-ray value over the level's rays (``rel2``: their cells on a 2D ``grid``; cells
+    with no ray hold 0; ``mode``: scipy.ndimage's edge mode), one value per ray."""
+    vmap = np.zeros(grid, values.dtype)
+    vmap[rel2[:, 0], rel2[:, 1]] = values
+    return ndimage.median_filter(vmap, size=5, mode=mode)[rel2[:, 0], rel2[:, 1]]
+
+
 def _falling_floor(depth: np.ndarray, prof: np.ndarray, n_partial: int, rel2: np.ndarray, grid: tuple) -> np.ndarray:
     """1 where a ray's water (``depth`` voxels of its HU profile ``prof``) ends in a fall to fat: drop its last voxel.
 
     Water never borders fat in a stomach: the wall (2 mm or more) lies between. A wall too thin to be resolved
     between water and fat is blurred away (its voxels average to water), so the ray runs on to the fat (below
-    ``FLUID_MIN_HU``) and takes the wall in: its last voxel is that wall, not water. The flag is the 5 x 5 majority
-    of the 5 x 5 window round each ray on the level's ``grid`` (``rel2``: the rays' cells; a cell with no ray counts
-    as not falling), so one noisy ray leaves no pit in the floor.
-    Rays ending on a rise above the water range (a resolved wall) or in the air-water partial zone (``n_partial``
-    voxels) are 0. (Two voxels on grids finer than 1.3 mm hid a bead under the fluid on a tuning stomach.)
+    ``FLUID_MIN_HU``) and takes the wall in: its last voxel is that wall, not water. The flag is the majority of the
+    5 x 5 window round each ray (:func:`_level_median`; a cell with no ray counts as not falling), so one noisy ray
+    leaves no pit in the floor. Rays ending on a rise above the water range (a resolved wall) or in the air-water
+    partial zone (``n_partial`` voxels) are 0. (Two voxels on grids finer than 1.3 mm hid a bead under the fluid on
+    a tuning stomach.)
     """
     rows = np.arange(len(depth))
     after = prof[rows, np.minimum(depth, prof.shape[1] - 1)]
     fall = ((depth > n_partial) & (depth < prof.shape[1]) & (after < FLUID_MIN_HU)).astype(np.uint8)
-    fmap = np.zeros(grid, np.uint8)
-    fmap[rel2[:, 0], rel2[:, 1]] = fall
-    major = ndimage.median_filter(fmap, size=5, mode="nearest")[rel2[:, 0], rel2[:, 1]].astype(bool)
+    major = _level_median(fall, rel2, grid, "nearest").astype(bool)
     return (major & (depth > n_partial)).astype(depth.dtype)
 
 
@@ -467,9 +473,8 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     stop = (bad & np.concatenate([bad[:, 1:], np.ones((len(bad), 1), bool)], 1)) | (prof > max_hu) | ~inside
     stop[:, -1] = True
     run = np.argmax(stop, axis=1)  # voxels of fluid behind each level voxel
-    dmap = np.zeros([hu.shape[a] for a in range(3) if a != ax], np.int64)
-    dmap[rel2[:, 0], rel2[:, 1]] = run
-    med = ndimage.median_filter(dmap, size=5, mode="constant")[rel2[:, 0], rel2[:, 1]]
+    grid = tuple(hu.shape[a] for a in range(3) if a != ax)
+    med = _level_median(run.astype(np.int64), rel2, grid, "constant")
     take = offs[None, :] <= np.minimum(run, med + 2)[:, None]
     water = np.count_nonzero(take & ok & (offs[None, :] > n_partial), axis=1) >= 2
     if float(np.mean(water)) < 0.5:
@@ -477,7 +482,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     # the fluid's floor: the 5 x 5 median of the rays' depths (no pillar left by a ray a noise voxel stopped,
     # no spike where a ray went through a thin wall)
     depth = np.minimum(med, np.count_nonzero(inside, axis=1))
-    depth -= _falling_floor(depth, prof, n_partial, rel2, dmap.shape)
+    depth -= _falling_floor(depth, prof, n_partial, rel2, grid)
     take = offs[None, :] <= depth[:, None]
     take &= prof <= max_hu + 50.0  # never over a marker, calcification or contrast the median reached
     r, c = np.nonzero(take)
