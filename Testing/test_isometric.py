@@ -195,6 +195,35 @@ def test_geodesic_pairs_match_the_unrolled_distance():
     assert rel.min() > -0.005 and np.median(rel) < 0.03 and rel.max() < 0.10
 
 
+def test_geodesic_pairs_are_those_searches_run_to_the_end_find():
+    # each landmark's search stops at twice its distance to the rim (or the longest pair): the pairs and lengths must
+    # be those of unbounded searches over the same graph (edges and two-ring chords) under the same rules
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    from StomachUnfoldLib.methods.isometric import boundary_loops, geodesic_pairs
+
+    v, f, _ = _half_cylinder(r=40.0, length=200.0, n_theta=50, n_z=100)   # 126 x 200 mm: rim distances up to 63 mm
+    a, b, g = geodesic_pairs(v, f, n_landmarks=120)
+    nv, e = len(v), np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    A = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(nv, nv))
+    A = ((A + A.T) > 0).astype(float)
+    A2 = ((A @ A + A) > 0).tocoo()
+    r, c = A2.row[A2.row < A2.col], A2.col[A2.row < A2.col]
+    G = coo_matrix((np.linalg.norm(v[r] - v[c], axis=1), (r, c)), shape=(nv, nv)).tocsr()
+    lm = np.unique(np.concatenate([a, b]))
+    D = dijkstra(G, directed=False, indices=lm)[:, lm]
+    d_rim = dijkstra(G, directed=False, indices=np.concatenate(boundary_loops(f)), min_only=True)[lm]
+    i, j = np.triu_indices(len(lm), 1)
+    want = (D[i, j] >= 10.0) & (D[i, j] <= 80.0) & (D[i, j] < d_rim[i] + d_rim[j])
+    tie = {(lm[p], lm[q]) for p, q in zip(i, j) if abs(D[p, q] - d_rim[p] - d_rim[q]) < 1e-9}  # a geodesic along the
+    ref = {(lm[p], lm[q]): D[p, q] for p, q in zip(i[want], j[want])}           # rim: in or out by rounding alone
+    got = {(min(p, q), max(p, q)): x for p, q, x in zip(a, b, g)}
+    assert len(ref) > 1000 and len(tie) < 0.05 * len(ref) and got.keys() - tie == ref.keys() - tie
+    assert max(abs(got[k] - ref[k]) for k in ref) < 1e-9
+    assert np.sum(d_rim > 42.0) > 5                       # some searches ran to the longest pair's reach, not 2 d_rim
+
+
 def test_distance_terms_keep_long_lengths_on_a_curved_cap():
     """On a sphere cap (not developable) the distance terms bring landmark-pair lengths closer to their geodesics
     than ARAP alone, without stretching any edge past the judge's 1.5x."""

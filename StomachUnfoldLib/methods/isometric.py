@@ -375,6 +375,7 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
     r, c = A2.row[keep], A2.col[keep]
     wgt = np.linalg.norm(v[r] - v[c], axis=1)
     G = coo_matrix((wgt, (r, c)), shape=(nv, nv)).tocsr()
+    G = (G + G.T).tocsr()  # both directions stored: a directed search over it is the undirected one, and faster
     k = int(min(n_landmarks, nv))
     lm = np.empty(k, np.int64)
     lm[0] = 0
@@ -385,11 +386,17 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
         lm[i] = int(np.argmax(d2))
         np.subtract(vc, vc[lm[i]], out=step)
         np.minimum(d2, np.einsum("ij,ij->i", step, step), out=d2)
-    D = dijkstra(G, directed=False, indices=lm, limit=pair_max_mm * 1.05)[:, lm]
     rim = np.unique(_boundary_edges(f))
-    d_rim = dijkstra(G, directed=False, indices=rim, min_only=True)[lm] if len(rim) else np.full(k, np.inf)
+    d_rim = dijkstra(G, indices=rim, min_only=True)[lm] if len(rim) else np.full(k, np.inf)
+    # a pair is kept only when g < d_rim[a] + d_rim[b] <= 2 max(d_rim[a], d_rim[b]): the search from the end farther
+    # from the rim finds it within twice that end's rim distance, so each search stops there (or at the longest pair)
+    reach = np.minimum(pair_max_mm * 1.05, 2.0 * d_rim)
+    D = np.full((k, k), np.inf)
+    for grp in np.array_split(np.argsort(reach), min(k, 8)):  # searches of similar reach together, one call each
+        if len(grp):
+            D[grp] = dijkstra(G, indices=lm[grp], limit=float(reach[grp].max()))[:, lm]
     a, b = np.triu_indices(k, 1)
-    g = D[a, b]
+    g = np.where(d_rim[a] >= d_rim[b], D[a, b], D[b, a])  # each pair from its end farther from the rim
     ok = np.isfinite(g) & (g >= pair_min_mm) & (g <= pair_max_mm) & (g < d_rim[a] + d_rim[b])
     return lm[a[ok]], lm[b[ok]], g[ok]
 
@@ -575,9 +582,7 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
         """Jacobians (n,2,2) and largest singular values of the triangles t of the current map."""
         y = out[fg[t]]
         J = np.stack([y[:, 1] - y[:, 0], y[:, 2] - y[:, 0]], -1) @ Ainv[t]
-        fro = np.sum(J * J, axis=(1, 2))
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        return J, np.sqrt(0.5 * (fro + np.sqrt(np.maximum(fro * fro - 4 * det * det, 0.0))))
+        return J, _singular_values(J)[0]
 
     s1 = jacobians(np.arange(len(fg)))[1]
     before = int(np.sum(s1 > limit))
@@ -687,11 +692,9 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
     for n in range(rounds):
         Y = y[f]
         J = np.stack([Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0]], -1) @ Ainv
-        fro = np.sum(J * J, axis=(1, 2))
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        disc = np.sqrt(np.maximum(fro * fro - 4 * det * det, 0.0))
-        s2 = np.sqrt(np.maximum(0.5 * (fro - disc), 0.0)) * np.sign(det) * orientation   # < 0: turned over
-        bad = (np.sqrt(0.5 * (fro + disc)) > goal) | (s2 < STRETCH_SHRINK_MIN)
+        s1, s2, det = _singular_values(J)
+        s2 = s2 * np.sign(det) * orientation                            # < 0: turned over
+        bad = (s1 > goal) | (s2 < STRETCH_SHRINK_MIN)
         if not bad.any():
             return y, n
         U, S, Vt = np.linalg.svd(J[bad])
@@ -706,6 +709,14 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
         y = lu.solve(np.ascontiguousarray(b + eps * y))
         y = _rigid_fit(y, uv)
     return y, rounds
+
+
+def _singular_values(J: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Singular values s1 >= s2 >= 0 and the determinant of 2 x 2 Jacobians J (n,2,2), in closed form."""
+    fro = np.sum(J * J, axis=(1, 2))
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    disc = np.sqrt(np.maximum(fro * fro - 4 * det * det, 0.0))
+    return np.sqrt(0.5 * (fro + disc)), np.sqrt(np.maximum(0.5 * (fro - disc), 0.0)), det
 
 
 def _rigid_fit(y: np.ndarray, x: np.ndarray) -> np.ndarray:
