@@ -375,7 +375,6 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
     r, c = A2.row[keep], A2.col[keep]
     wgt = np.linalg.norm(v[r] - v[c], axis=1)
     G = coo_matrix((wgt, (r, c)), shape=(nv, nv)).tocsr()
-    G = (G + G.T).tocsr()  # both directions stored: a directed search over it is the undirected one, and faster
     k = int(min(n_landmarks, nv))
     lm = np.empty(k, np.int64)
     lm[0] = 0
@@ -387,16 +386,18 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
         np.subtract(vc, vc[lm[i]], out=step)
         np.minimum(d2, np.einsum("ij,ij->i", step, step), out=d2)
     rim = np.unique(_boundary_edges(f))
-    d_rim = dijkstra(G, indices=rim, min_only=True)[lm] if len(rim) else np.full(k, np.inf)
-    # a pair is kept only when g < d_rim[a] + d_rim[b] <= 2 max(d_rim[a], d_rim[b]): the search from the end farther
-    # from the rim finds it within twice that end's rim distance, so each search stops there (or at the longest pair)
-    reach = np.minimum(pair_max_mm * 1.05, 2.0 * d_rim)
+    d_rim = dijkstra(G, directed=False, indices=rim, min_only=True)[lm] if len(rim) else np.full(k, np.inf)
+    # pair (a, b), a before b, is read from a's search and kept only when g < d_rim[a] + d_rim[b]: so a's search can
+    # stop at d_rim[a] plus the largest rim distance of the landmarks after it (or at the longest pair)
+    after = np.append(np.maximum.accumulate(d_rim[::-1])[::-1][1:], 0.0)
+    reach = np.minimum(pair_max_mm * 1.05, d_rim + after)
+    both = (G + G.T).tocsr()  # both directions stored: a directed search over it is the undirected one, and faster
     D = np.full((k, k), np.inf)
     for grp in np.array_split(np.argsort(reach), min(k, 8)):  # searches of similar reach together, one call each
         if len(grp):
-            D[grp] = dijkstra(G, indices=lm[grp], limit=float(reach[grp].max()))[:, lm]
+            D[grp] = dijkstra(both, indices=lm[grp], limit=float(reach[grp].max()))[:, lm]
     a, b = np.triu_indices(k, 1)
-    g = np.where(d_rim[a] >= d_rim[b], D[a, b], D[b, a])  # each pair from its end farther from the rim
+    g = D[a, b]
     ok = np.isfinite(g) & (g >= pair_min_mm) & (g <= pair_max_mm) & (g < d_rim[a] + d_rim[b])
     return lm[a[ok]], lm[b[ok]], g[ok]
 
