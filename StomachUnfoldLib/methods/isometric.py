@@ -394,8 +394,7 @@ def geodesic_pairs(v: np.ndarray, f: np.ndarray, n_landmarks: int = 200, pair_mi
     both = (G + G.T).tocsr()  # both directions stored: a directed search over it is the undirected one, and faster
     D = np.full((k, k), np.inf)
     for grp in np.array_split(np.argsort(reach), min(k, 8)):  # searches of similar reach together, one call each
-        if len(grp):
-            D[grp] = dijkstra(both, indices=lm[grp], limit=float(reach[grp].max()))[:, lm]
+        D[grp] = dijkstra(both, indices=lm[grp], limit=float(reach[grp].max()))[:, lm]
     a, b = np.triu_indices(k, 1)
     g = D[a, b]
     ok = np.isfinite(g) & (g >= pair_min_mm) & (g <= pair_max_mm) & (g < d_rim[a] + d_rim[b])
