@@ -314,31 +314,29 @@ class _NrrdBackend:
 
     def gzip_slabs(self, k_lo: int, k_hi: int, depth: int):
         """Yield (k0, native block) of slices k_lo..k_hi-1, decompressed from the nearest mark before k_lo."""
-        sb, k = self.slice_bytes, k_lo
+        sb = self.slice_bytes
         chunks = self._gzip_chunks(k_lo * sb)
-        buf, buf_u = bytearray(), None
+        rest, rest_u, have = memoryview(b""), 0, 0  # the last chunk's bytes not yet used, their offset, data end
         try:
-            while k < k_hi:
+            for k in range(k_lo, k_hi, depth):
                 n = min(k + depth, k_hi) - k
-                while buf_u is None or buf_u + len(buf) < (k + n) * sb:
-                    u, chunk = next(chunks, (None, None))
-                    if chunk is None:
-                        have = (buf_u or 0) + len(buf)
-                        raise InputError(f"{self.path} is truncated: its data ends in slice {have // sb + 1} of "
-                                         f"{self.shape[0]}; the download or copy was cut, export it again")
-                    if buf_u is None:
-                        buf_u = u
-                    buf += chunk
-                    if buf_u < k * sb:  # bytes before the first slice wanted
-                        drop = min(k * sb - buf_u, len(buf))
-                        del buf[:drop]
-                        buf_u += drop
-                # the slab as its own bytes: no view on buf may exist when buf is resized below
-                block = np.frombuffer(bytes(buf[:n * sb]), self.dtype).reshape((n,) + self.shape[1:])
-                del buf[:n * sb]
+                raw = np.empty(n * sb, np.uint8)        # each decompressed byte is copied once, into its slab
+                filled = 0
+                while filled < len(raw):
+                    if not len(rest):
+                        u, chunk = next(chunks, (None, None))
+                        if chunk is None:
+                            raise InputError(f"{self.path} is truncated: its data ends in slice {have // sb + 1} of "
+                                             f"{self.shape[0]}; the download or copy was cut, export it again")
+                        rest, rest_u, have = memoryview(chunk), u, u + len(chunk)
+                        skip = min(max(k * sb + filled - rest_u, 0), len(rest))  # bytes before the first slice
+                        rest, rest_u = rest[skip:], rest_u + skip
+                        continue
+                    take = min(len(raw) - filled, len(rest))
+                    raw[filled:filled + take] = np.frombuffer(rest[:take], np.uint8)
+                    rest, rest_u, filled = rest[take:], rest_u + take, filled + take
+                block = raw.view(self.dtype).reshape((n,) + self.shape[1:])
                 yield k, block if block.dtype.isnative else self._native(block)
-                buf_u += n * sb
-                k += n
         finally:
             chunks.close()
 

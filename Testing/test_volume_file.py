@@ -1,6 +1,8 @@
 """A CT left on file and read box by box (volume_file): the same voxels, geometry and results as a whole read."""
+import gzip
 import os
 import platform
+import zlib
 
 import numpy as np
 import pytest
@@ -79,6 +81,13 @@ def test_a_big_endian_raw_nrrd_is_read_in_boxes(tmp_path):
     assert isinstance(s.array, FileArray)
     np.testing.assert_array_equal(np.asarray(s.array), suio.read_volume(path).array)
     np.testing.assert_array_equal(s.array[3:9, ::2, 5], a[3:9, ::2, 5])
+    gz = tmp_path / "be_gzip.nrrd"                 # the same data gzip-compressed: decompressed slab by slab
+    gz.write_bytes(head.replace("encoding: raw", "encoding: gzip").encode() + gzip.compress(a.astype(">i2").tobytes()))
+    g = suio.read_volume(gz, stream=True).array
+    assert isinstance(g, FileArray)
+    g.scan(-500.0)
+    np.testing.assert_array_equal(g[3:9, ::2, 5], a[3:9, ::2, 5])
+    np.testing.assert_array_equal(np.asarray(g), a)
 
 
 def test_slabs_of_a_gzip_nrrd_resume_from_marks_and_match(tmp_path, monkeypatch):
@@ -115,8 +124,13 @@ def test_truncated_nrrd_files_are_refused_with_a_reason(tmp_path):
     cut = tmp_path / "cut.nrrd"
     cut.write_bytes(data[:len(data) * 2 // 3])
     s = suio.read_volume(cut, stream=True)
-    with pytest.raises(InputError, match="truncated.*export it again"):
+    with pytest.raises(InputError, match="truncated.*export it again") as err:
         s.array.scan(-500.0)
+    # the slice named is the one the decompressed data ends in
+    body = cut.read_bytes()
+    body = body[body.index(b"\n\n") + 2:]
+    ends = len(zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(body)) // (60 * 50 * 2) + 1
+    assert f"its data ends in slice {ends} of 80;" in str(err.value)
     raw = _write(_ct(shape=(80, 60, 50)), tmp_path / "raw.nrrd", compress=False)
     short = tmp_path / "short.nrrd"
     short.write_bytes(open(raw, "rb").read()[:-1000])
