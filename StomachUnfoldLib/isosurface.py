@@ -12,7 +12,7 @@ import numpy as np
 __all__ = ["isosurface"]
 
 
-def isosurface(field: np.ndarray, level: float, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def isosurface(field: np.ndarray, level: float, step: int = 1, sampled: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Triangle mesh of ``field == level``: ``(verts (N, 3) float64 in (k, j, i) index units, faces (F, 3) int64)``.
 
     Parameters
@@ -24,6 +24,8 @@ def isosurface(field: np.ndarray, level: float, step: int = 1) -> tuple[np.ndarr
     step : int
         Sample every ``step``-th voxel along each axis (as skimage's ``step_size``): the vertex count falls
         about as ``step ** 2``; vertices stay in the full grid's index units.
+    sampled : bool
+        ``field`` already holds only every ``step``-th voxel of the grid (``grid[::step, ::step, ::step]``).
 
     Returns
     -------
@@ -44,7 +46,7 @@ def isosurface(field: np.ndarray, level: float, step: int = 1) -> tuple[np.ndarr
     f = np.asarray(field)
     if f.ndim != 3:
         raise ValueError(f"field must be 3-D (k, j, i), got shape {f.shape}")
-    sub = np.ascontiguousarray(f[::step, ::step, ::step], dtype=np.float32)
+    sub = np.ascontiguousarray(f if sampled else f[::step, ::step, ::step], dtype=np.float32)
     empty = (np.zeros((0, 3)), np.zeros((0, 3), np.int64))
     if min(sub.shape) < 2 or not np.nanmin(sub) <= level <= np.nanmax(sub) or np.nanmin(sub) == np.nanmax(sub):
         return empty

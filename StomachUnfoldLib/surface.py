@@ -87,21 +87,35 @@ def smooth_tangents(points: np.ndarray, arc: np.ndarray, sigma_mm: float = 4.0, 
     return unit(t)
 
 
-def surface_field(crop: Volume, lumen: np.ndarray, mask_given: bool) -> tuple[np.ndarray, float]:
+def surface_field(crop: Volume, lumen: np.ndarray, mask_given: bool, step: int = 1,
+                  start: int = 0) -> tuple[np.ndarray, float]:
     """Float field on the crop grid whose ``level`` iso-surface is the inner wall (below the level = lumen side).
 
     With gas: the CT's HU in a one-voxel band around the lumen (+200 HU elsewhere, so no other gas counts), blurred
     by SURFACE_SIGMA_VOX voxels, level -500 HU (the lumen's air threshold): a smooth sub-voxel surface. With a stomach
-    mask (no gas): the mask blurred the same way and scaled to -1000..0, level -500.
+    mask (no gas): the mask blurred the same way and scaled to -1000..0, level -500. With ``step`` > 1, only the
+    voxels ``start::step`` along each axis (what a marching cubes of that step reads), the same values as the whole
+    field's there.
     """
     if mask_given:
-        return (-1000.0 * ndimage.gaussian_filter(lumen.astype(np.float32), SURFACE_SIGMA_VOX)).astype(np.float32), -500.0
+        g = _blur(lumen.astype(np.float32), SURFACE_SIGMA_VOX, step, start)
+        return (-1000.0 * g).astype(np.float32), -500.0
     # the lumen dilated by a 3 x 3 x 3 box (a separable maximum filter: the same, twice as fast)
     band = ndimage.maximum_filter(np.asarray(lumen, bool).view(np.uint8), size=3, mode="constant", cval=0) > 0
     field = np.where(band, crop.array.astype(np.float32), np.float32(200.0))
     # a little blur (1 voxel) as a CT's partial volume gives: voxel staircases would tilt the sampled surface
-    field = ndimage.gaussian_filter(field, SURFACE_SIGMA_VOX)
-    return field, -500.0
+    return _blur(field, SURFACE_SIGMA_VOX, step, start), -500.0
+
+
+def _blur(a: np.ndarray, sigma_vox: float, step: int, start: int) -> np.ndarray:
+    """``ndimage.gaussian_filter(a, sigma_vox)`` (float32) at the voxels ``start::step`` of each axis: the axes are
+    filtered in its order, each on the lines the later axes still need, so the values are the same to the bit."""
+    if step == 1 and start == 0:
+        return ndimage.gaussian_filter(a, sigma_vox)
+    for axis in range(a.ndim):
+        a = ndimage.gaussian_filter1d(a, sigma_vox, axis=axis, output=np.float32)
+        a = a[(slice(None),) * axis + (slice(start, None, step),)]
+    return a
 
 
 def to_int16(a: np.ndarray) -> np.ndarray:
@@ -160,11 +174,16 @@ def inner_surface(lumen: np.ndarray, crop: Volume, max_vertices: int, mask_given
     from .isosurface import isosurface
 
     n_edge = int(np.count_nonzero(lumen_edge(lumen)))
-    field, level = surface_field(crop, lumen, mask_given)
-    sm = np.pad(field, 2, constant_values=np.float32(1e4 if not mask_given else 0.0))
-    del field  # one crop-sized float field at a time
     step = max(1, int(np.ceil(np.sqrt(n_edge / float(max_vertices)))))
-    verts, faces = isosurface(sm, level, step)
+    # the field padded by 2 voxels, read every step-th voxel: only the field's voxels -2 (mod step) are needed
+    start = (-2) % step
+    field, level = surface_field(crop, lumen, mask_given, step, start)
+    n_pad = [-(-(n + 4) // step) for n in lumen.shape]              # len(range(0, n + 4, step))
+    sm = np.full(n_pad, np.float32(1e4 if not mask_given else 0.0), np.float32)
+    m0 = (start + 2) // step
+    sm[m0:m0 + field.shape[0], m0:m0 + field.shape[1], m0:m0 + field.shape[2]] = field
+    del field
+    verts, faces = isosurface(sm, level, step, sampled=True)
     ijk = verts[:, ::-1] - 2.0
     return crop.index_to_lps(ijk), faces.astype(np.int64), step
 
