@@ -122,7 +122,7 @@ def available_memory_bytes() -> int:
 #: Blocks at least this large (bytes) are mapped and unmapped on their own under :func:`return_freed_memory`: the
 #: crop-sized arrays, not the flat map's per-iteration temporaries (about 1 MB each on 25,000 triangles), which
 #: would then be mapped, zero-filled and unmapped every iteration (128 KiB: the full-size CT 9.3-9.8 s against
-#: 7.1-7.6 s at 4 MiB, a random stomach 30-35 % slower; the peak 390 MiB against 406-421 MiB)
+#: 7.1-7.6 s at 4 MiB, random stomachs 1.3-1.6x as slow; the peak 390 MiB against 406-421 MiB)
 LEAN_MALLOC_BYTES = 4 << 20
 
 
