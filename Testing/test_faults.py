@@ -181,10 +181,13 @@ def test_ctrl_c_on_the_command_line_leaves_no_output(tmp_path):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=_default_sigint)
     deadline = time.time() + 60
-    # wait until the run is under way (it has created nothing yet), then interrupt it
-    time.sleep(3.0)
+    # wait until the run is under way (its first stage's line; it has created nothing yet), then interrupt it: a
+    # fixed sleep came within a second of the run's end once the run took 4 s
+    first = proc.stderr.readline()
+    assert first.startswith("reading the CT"), first
     proc.send_signal(signal.SIGINT)
     stdout, stderr = proc.communicate(timeout=max(1, deadline - time.time()))
+    stderr = first + stderr
     assert proc.returncode in (130, -signal.SIGINT), stderr
     if proc.returncode == 130:
         assert "cancelled" in stderr

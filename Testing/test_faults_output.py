@@ -205,8 +205,11 @@ def test_sigterm_while_writing_keeps_the_previous_outputs(case, tmp_path):
 
 def test_sighup_during_the_run_leaves_nothing(case, tmp_path):
     out = tmp_path / "new"
-    proc = _start("unfold", case["ct"], "--points", case["pts"], "-o", out, *FAST)
-    time.sleep(1.5)
+    # not --quiet: the first stage's line says the run is under way (a fixed sleep raced the run's end once it took
+    # about as long: a signal during the interpreter's exit gets the default action)
+    proc = _start("unfold", case["ct"], "--points", case["pts"], "-o", out, *[a for a in FAST if a != "--quiet"])
+    first = proc.stderr.readline()
+    assert first.startswith("reading the CT"), first
     proc.send_signal(signal.SIGHUP)
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGHUP and "stopped by SIGHUP" in stderr, (proc.returncode, stderr)
