@@ -316,7 +316,7 @@ class _NrrdBackend:
         """Yield (k0, native block) of slices k_lo..k_hi-1, decompressed from the nearest mark before k_lo."""
         sb = self.slice_bytes
         chunks = self._gzip_chunks(k_lo * sb)
-        rest, rest_u, have = memoryview(b""), 0, 0  # the last chunk's bytes not yet used, their offset, data end
+        rest, have = memoryview(b""), 0  # the last chunk's bytes not yet used; where the data received ends
         try:
             for k in range(k_lo, k_hi, depth):
                 n = min(k + depth, k_hi) - k
@@ -328,13 +328,12 @@ class _NrrdBackend:
                         if chunk is None:
                             raise InputError(f"{self.path} is truncated: its data ends in slice {have // sb + 1} of "
                                              f"{self.shape[0]}; the download or copy was cut, export it again")
-                        rest, rest_u, have = memoryview(chunk), u, u + len(chunk)
-                        skip = min(max(k * sb + filled - rest_u, 0), len(rest))  # bytes before the first slice
-                        rest, rest_u = rest[skip:], rest_u + skip
+                        skip = min(max(k * sb + filled - u, 0), len(chunk))  # bytes before the first slice
+                        rest, have = memoryview(chunk)[skip:], u + len(chunk)
                         continue
                     take = min(len(raw) - filled, len(rest))
                     raw[filled:filled + take] = np.frombuffer(rest[:take], np.uint8)
-                    rest, rest_u, filled = rest[take:], rest_u + take, filled + take
+                    rest, filled = rest[take:], filled + take
                 block = raw.view(self.dtype).reshape((n,) + self.shape[1:])
                 yield k, block if block.dtype.isnative else self._native(block)
         finally:
