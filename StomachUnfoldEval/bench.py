@@ -185,6 +185,14 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
     return row
 
 
+def _run_case_in_worker(case: dict, png_dir: str | None = None) -> dict:
+    """:func:`run_case` in a Dask worker: as a batch worker, no work that may be thrown away beside the run."""
+    from StomachUnfoldLib import spare_core
+
+    spare_core.SPARE_CORES = False
+    return run_case(case, png_dir)
+
+
 def run_cases(cases: list[dict], png_dir: str | None = None, scheduler: str | None = None,
               workers: int | None = None) -> list[dict]:
     """Run cases in parallel through Dask (local cluster, or the scheduler address given); rows in case order."""
@@ -202,7 +210,7 @@ def run_cases(cases: list[dict], png_dir: str | None = None, scheduler: str | No
                                processes=True, dashboard_address=None)
         client = Client(cluster)
     try:
-        futures = client.map(run_case, cases, png_dir=png_dir, pure=False)
+        futures = client.map(_run_case_in_worker, cases, png_dir=png_dir, pure=False)
         return client.gather(futures)
     finally:
         client.close()

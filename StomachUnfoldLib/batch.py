@@ -335,10 +335,13 @@ def run_case(job: dict, record: dict) -> dict:
 
 
 def run_case_in_worker(job: dict, record: dict) -> dict:
-    """:func:`run_case` in a worker process the batch owns: freed memory goes back to the system at once first."""
+    """:func:`run_case` in a worker process the batch owns: freed memory goes back to the system at once first, and
+    no work that may be thrown away is started beside the run (the other workers have the other cores)."""
+    from . import spare_core
     from .frontend import return_freed_memory
 
     return_freed_memory()
+    spare_core.SPARE_CORES = False
     return run_case(job, record)
 
 

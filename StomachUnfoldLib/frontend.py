@@ -1,4 +1,5 @@
-"""The shared front end of every method: checked input, lumen, crop, wall region, centreline and incision line.
+"""The shared front end of every method: checked input, lumen, crop, centreline and incision line (and the wall region,
+made when a method asks for it).
 
 ``prepare(ct, cardia_lps, pylorus_lps, params, mask)`` returns a :class:`Prepared`; every method
 (``StomachUnfoldLib.methods``) starts from it. Coordinates are LPS mm throughout; messages name points in RAS.
@@ -26,18 +27,19 @@ __all__ = ["Prepared", "prepare", "check_volume", "check_points", "outside_messa
 #: The cardia lies superior to the pylorus on supine CT; a "cardia" this far (mm) below the "pylorus" is a swap.
 SWAP_LIMIT_MM = 20.0
 #: The front end's stages and their share of the front end's progress.
-FRONT_STAGES = [("air region", 0.0, 0.33), ("wall region", 0.33, 0.5), ("centerline", 0.5, 0.83),
-                ("incision line", 0.83, 1.0)]
+FRONT_STAGES = [("air region", 0.0, 0.4), ("centerline", 0.4, 0.83), ("incision line", 0.83, 1.0)]
 
 
 @dataclass
 class Prepared:
-    """What every method starts from: the CT crop (HU), lumen and wall masks on it, centreline and incision (LPS mm)."""
+    """What every method starts from: the CT crop (HU), lumen and wall masks on it, centreline and incision (LPS mm).
+
+    The wall mask (``wall``) is made on first use: only the wall model's methods need it.
+    """
 
     ct: Volume                      # the whole input CT (HU), never modified
     crop: Volume                    # the CT cropped to the stomach plus a margin (HU)
     lumen: np.ndarray               # bool (k, j, i) on the crop: the stomach lumen
-    wall: np.ndarray                # bool (k, j, i) on the crop: the wall region around the lumen
     centerline: object              # centerline.Centerline (LPS mm), cardia first
     incision: object                # incision_line.Incision (LPS mm)
     cardia_lps: np.ndarray
@@ -50,6 +52,19 @@ class Prepared:
     air_info: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     seconds: dict = field(default_factory=dict)
+    _wall: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def wall(self) -> np.ndarray:
+        """Bool (k, j, i) on the crop: the wall region, voxels within the wall thickness (mm) outside the lumen; made
+        on first use (its seconds under "wall region")."""
+        if self._wall is None:
+            from .preprocessing import wall_region
+
+            t = time.perf_counter()
+            self._wall = wall_region(self.lumen, self.crop.spacing, self.params.wall_thickness_mm)
+            self.seconds["wall region"] = time.perf_counter() - t
+        return self._wall
 
     @property
     def lumen_crop(self) -> Volume:
@@ -357,7 +372,7 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     """
     from .centerline import compute_centerline
     from .incision_line import compute_incision_line, incision_from_curve
-    from .preprocessing import bounding_box, wall_region
+    from .preprocessing import bounding_box
     from .wall_model import grid_steps
 
     params = params or UnfoldParameters()
@@ -365,10 +380,9 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     seconds: dict[str, float] = {}
     on_file = isinstance(getattr(ct, "array", None), FileArray)
-    if on_file and mask is None:  # a CT on file: one pass for the value range and the air
-        t_scan = time.perf_counter()
+    if on_file and mask is None:  # a CT on file: one pass for the value range and the air (made once, maybe before)
         ct.array.scan(params.air_threshold_hu)
-        seconds["reading"] = time.perf_counter() - t_scan  # and the crop's read below
+        seconds["reading"] = ct.array.scan_seconds  # and the crop's read below
     warnings = check_volume(ct)
     cardia, pylorus, w = check_points(ct, cardia_lps, pylorus_lps, params.swap_check)
     warnings += w
@@ -386,21 +400,19 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     del lumen
     if on_file:
         ct.array.release()
-    with timed_stage(prog, "wall region", seconds, *FRONT_STAGES[1][1:]):
-        wall = wall_region(lumen_c, crop.spacing, params.wall_thickness_mm)
     if incision_curve_lps is not None:
         check_incision_curve(incision_curve_lps, lumen_c, crop, params.wall_thickness_mm + params.max_snap_mm)
-    with _AsGiven(bool(w)), timed_stage(prog, "centerline", seconds, *FRONT_STAGES[2][1:]) as report:
+    with _AsGiven(bool(w)), timed_stage(prog, "centerline", seconds, *FRONT_STAGES[1][1:]) as report:
         cl = compute_centerline(lumen_c, crop, cardia, pylorus, step_mm=params.centerline_step_mm,
                                 max_snap_mm=params.max_snap_mm, progress=report)
     with _AsGiven(bool(w)):
         warnings += _check_centerline(cl, cell_mm)
-    with timed_stage(prog, "incision line", seconds, *FRONT_STAGES[3][1:]):
+    with timed_stage(prog, "incision line", seconds, *FRONT_STAGES[2][1:]):
         if incision_curve_lps is not None:
             inc = incision_from_curve(incision_curve_lps, cl)
         else:
             inc = compute_incision_line(lumen_c, crop, cl, side=params.incision)
-    return Prepared(ct=ct, crop=crop, lumen=lumen_c, wall=wall, centerline=cl, incision=inc, cardia_lps=cardia,
+    return Prepared(ct=ct, crop=crop, lumen=lumen_c, centerline=cl, incision=inc, cardia_lps=cardia,
                     pylorus_lps=pylorus, crop_lo_ijk=lo, crop_hi_ijk=hi, params=params, mask_given=mask is not None,
                     air_info={k: v for k, v in info_air.items() if k != "warnings"}, warnings=warnings,
                     fluid_voxels=int(info_air.get("fluid_voxels", 0)),

@@ -1,8 +1,8 @@
 """The whole run, CT volume to unfolded volume: the shared front end, one method, the grade, the output files.
 
 ``unfold(ct, cardia_lps, pylorus_lps, params)`` runs :func:`~StomachUnfoldLib.frontend.prepare` (air region or
-stomach mask -> crop -> wall region -> centreline -> incision line), then the method ``params.method``
-(``StomachUnfoldLib.methods``: the paper's mass-spring model by default), then the quality grade.
+stomach mask -> crop -> centreline -> incision line; the wall region when the method asks for it), then the method
+``params.method`` (``StomachUnfoldLib.methods``: ``isometric`` by default), then the quality grade.
 ``UnfoldResult.write(out_dir)`` writes the same files for every method: ``unfolded.nrrd``, ``report.json``,
 ``view.png``, ``distortion.nrrd`` and ``distortion.png`` (where lengths on the view can be trusted),
 ``model_rest.vtu``, ``model_unfolded.vtu``, ``incision.mrk.json`` and ``centerline.mrk.json`` (and
@@ -16,7 +16,7 @@ import secrets
 import shutil
 import signal
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,6 +28,8 @@ from .methods import Mesh, get_method
 from .params import DEFAULT_CELL_MM, UnfoldParameters
 from .progress import Progress
 from .report import Report
+from .spare_core import Beside
+from .volume_file import FileArray
 
 __all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "OUTPUT_NAMES", "WALL_MODEL_METHODS", "signals_held",
            "stage_names", "DEFAULT_CELL_MM", "check_volume"]
@@ -236,30 +238,40 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     ``(stage, fraction)`` that may return False to cancel (raises Cancelled). The input is never modified.
     """
     params = params or UnfoldParameters()
-    params.validate()
-    method = get_method(params.method)
+    t_all = time.perf_counter()
+    # a CT on file is scanned (zlib, outside the interpreter lock) while the parameters are checked and the methods'
+    # modules load; the front end then finds the scan made (an invalid parameter stops the scan and is raised)
+    on_file = mask is None and isinstance(getattr(ct, "array", None), FileArray)
+    with (Beside(ct.array.scan, params.air_threshold_hu) if on_file else nullcontext()) as scan:
+        params.validate()
+        method = get_method(params.method)
+        if on_file:
+            scan.result()
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     span = {name: (lo, hi) for name, lo, hi in STAGES}
-    t_all = time.perf_counter()
     prep = prepare(ct, cardia_lps, pylorus_lps, params, mask=mask, incision_curve_lps=incision_curve_lps,
                    progress=prog.sub("front end", *span["front end"]))
     if method.name in WALL_MODEL_METHODS:
         check_model_memory(prep)
-    out = method.unfold(prep, prog.sub("method", *span["method"]))
-    seconds = {**prep.seconds, **out.seconds}
-    result = UnfoldResult(unfolded=out.unfolded, report=_report(prep, method, out, seconds),
-                          correspondence=out.correspondence, mesh=out.mesh,
-                          centerline_lps=np.asarray(prep.centerline.points_lps),
-                          incision_lps=np.asarray(prep.incision.points_lps), lumen_crop=prep.lumen_crop)
-    if params.quality:
-        from .quality import quality_metrics
+    from .quality import mucosa_points, quality_metrics
 
-        with timed_stage(prog, "quality", seconds, *span["quality"]) as report:
-            dmap = result.distortion(progress=lambda f: report(0.2 * f))
-            result.report.quality = quality_metrics(out.unfolded, out.correspondence, out.mesh, prep.lumen_crop,
-                                                    result.centerline_lps, progress=lambda f: report(0.2 + 0.8 * f),
-                                                    folded=dmap.multiple if out.mesh.kind == "triangle" else None)
-            result.report.quality["distortion_map"] = dmap.summary()
+    centerline_lps = np.asarray(prep.centerline.points_lps)
+    # the grade's mucosa points depend only on the front end: drawn beside the method where a core is spare
+    with (Beside(mucosa_points, prep.lumen_crop, centerline_lps, checked=False) if params.quality
+          else nullcontext()) as mucosa:
+        out = method.unfold(prep, prog.sub("method", *span["method"]))
+        seconds = {**prep.seconds, **out.seconds}
+        result = UnfoldResult(unfolded=out.unfolded, report=_report(prep, method, out, seconds),
+                              correspondence=out.correspondence, mesh=out.mesh, centerline_lps=centerline_lps,
+                              incision_lps=np.asarray(prep.incision.points_lps), lumen_crop=prep.lumen_crop)
+        if params.quality:
+            with timed_stage(prog, "quality", seconds, *span["quality"]) as report:
+                dmap = result.distortion(progress=lambda f: report(0.2 * f))
+                folded = dmap.multiple if out.mesh.kind == "triangle" else None
+                result.report.quality = quality_metrics(out.unfolded, out.correspondence, out.mesh, prep.lumen_crop,
+                                                        centerline_lps, progress=lambda f: report(0.2 + 0.8 * f),
+                                                        folded=folded, points_lps=mucosa.result())
+                result.report.quality["distortion_map"] = dmap.summary()
     from .plausibility import gas_contact_fraction, hidden_fold_warnings, plausibility_warnings
 
     orient = result.orientation() if params.quality else None

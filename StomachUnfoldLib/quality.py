@@ -203,7 +203,7 @@ def stretched_fraction(mesh, limit: float = 1.5) -> float:
 
 
 def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, centerline_lps,
-                    threshold_hu: float = -400.0, progress=None, folded=None) -> dict:
+                    threshold_hu: float = -400.0, progress=None, folded=None, points_lps=None) -> dict:
     """All automatic quality metrics and the grade of an unfolded Volume (HU), from any method's outputs.
 
     ``correspondence.to_unfolded`` maps CT LPS mm into the view; ``mesh`` is the method's Mesh; ``lumen_crop``
@@ -211,13 +211,14 @@ def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, cente
     ``progress`` (callable(fraction)) is called several times a second of work. ``folded`` (bool (j, i), e.g. a
     DistortionMap's ``multiple``) marks pixels where more than one piece of the mucosa's surface maps: a fold-over
     of a surface map that the volume, resampled from one piece per pixel, cannot show as a second layer (for a
-    surface method's triangle sheet; a volumetric model's folds show as layers).
+    surface method's triangle sheet; a volumetric model's folds show as layers). ``points_lps``: the mucosa points
+    (LPS mm) when already drawn, ``mucosa_points(lumen_crop, centerline_lps)`` (else drawn here).
     """
     report = progress or (lambda fraction: None)
     k_hit, _ = first_hit(vol, threshold_hu)
     seen = k_hit >= 0
     # visible fraction: mucosa points mapped into the view whose column's first hit is at their depth
-    pts = mucosa_points(lumen_crop, centerline_lps)
+    pts = mucosa_points(lumen_crop, centerline_lps) if points_lps is None else np.asarray(points_lps, float)
     report(0.05)
     mapped = np.zeros((len(pts), 3))
     for a in range(0, len(pts), 1000):

@@ -22,7 +22,7 @@ def test_a_memory_row_has_the_peak_the_ct_and_the_crop_and_is_charted(tmp_path):
     assert 0 < r["crop_voxels"] <= r["size_ijk"][0] * r["size_ijk"][1] * r["size_ijk"][2]
     assert r["peak_memory_mb"] >= r["peak_before_write_mb"] >= r["after_read_mb"] > 0
     assert r["ratio_to_ct"] == pytest.approx(r["peak_memory_mb"] / r["ct_mb"])
-    assert [s for s, _ in r["stage_peaks_mb"]][:2] == ["air region", "wall region"]
+    assert [s for s, _ in r["stage_peaks_mb"]][:2] == ["air region", "centerline"]
     made = []
     memory_plot(rows, str(tmp_path), made, plt)
     assert made == ["memory.png"] and os.path.getsize(tmp_path / "memory.png") > 5000

@@ -27,6 +27,7 @@ from ..centerline import OPENING_RADIUS_MM, in_openings
 from ..correspondence import MapCorrespondence
 from ..errors import AnatomyError, SimulationError
 from ..frontend import timed_stage
+from ..spare_core import Beside
 from ..surface import (compact, cut_surface, inner_surface, largest_component, orient_and_scale, perpendicular,
                        sample_flat_map, signed_area_2d, smooth_tangents, unit, vertex_normals)
 from . import Method, Unfolding, register
@@ -1043,20 +1044,24 @@ class IsometricFlattening(Method):
             # the pyloric half's boundary vertices; all of them when the cardia end is a tube's end, not a side opening
             bonly = ((cut.near >= BOUNDARY_FROM * (len(cut.Pd) - 1))
                      | (float(prep.centerline.radius_mm[0]) > OPENING_RADIUS_MM))
-            uv, f_keep, f_fold, info = _flat_map(cut, uv0, pairs, bonly, prep.pixel_mm, BOUNDARY_WEIGHT, report)
-            whole_mm2, fold_mm2 = _area_mm2(cut.v, cut.f), _area_mm2(cut.v, f_fold)
-            info["boundary_weight"] = BOUNDARY_WEIGHT
-            if fold_mm2 > FOLD_RETRY_FRACTION * whole_mm2:
-                # a large flap folded over the map (the pyloric canal's flare): the boundary held straighter hides less
-                w2 = BOUNDARY_WEIGHT * FOLD_RETRY_FACTOR
-                b2 = bonly & (cut.near >= FOLD_RETRY_FROM * (len(cut.Pd) - 1))
-                uv2, f_keep2, f_fold2, info2 = _flat_map(cut, uv0, pairs, b2, prep.pixel_mm, w2, None)
-                fold2 = _area_mm2(cut.v, f_fold2)
-                no_worse = info2["flat_defect_mm2"] <= max(HOLE_MM2, info["flat_defect_mm2"])
-                retry = [fold_mm2, fold2]
-                if fold2 < FOLD_RETRY_GAIN * fold_mm2 and no_worse:
-                    uv, f_keep, f_fold, info, fold_mm2 = uv2, f_keep2, f_fold2, dict(info2, boundary_weight=w2), fold2
-                info["fold_retry_mm2"] = retry
+            # the fold retry (below) starts beside the first map where a core is spare, and is dropped if not needed
+            w2 = BOUNDARY_WEIGHT * FOLD_RETRY_FACTOR
+            b2 = bonly & (cut.near >= FOLD_RETRY_FROM * (len(cut.Pd) - 1))
+            with Beside(_flat_map, cut, uv0, pairs, b2, prep.pixel_mm, w2, None) as second:
+                uv, f_keep, f_fold, info = _flat_map(cut, uv0, pairs, bonly, prep.pixel_mm, BOUNDARY_WEIGHT, report)
+                whole_mm2, fold_mm2 = _area_mm2(cut.v, cut.f), _area_mm2(cut.v, f_fold)
+                info["boundary_weight"] = BOUNDARY_WEIGHT
+                if fold_mm2 > FOLD_RETRY_FRACTION * whole_mm2:
+                    # a large flap folded over the map (the pyloric canal's flare): the boundary held straighter
+                    # hides less
+                    uv2, f_keep2, f_fold2, info2 = second.result()
+                    fold2 = _area_mm2(cut.v, f_fold2)
+                    no_worse = info2["flat_defect_mm2"] <= max(HOLE_MM2, info["flat_defect_mm2"])
+                    retry = [fold_mm2, fold2]
+                    if fold2 < FOLD_RETRY_GAIN * fold_mm2 and no_worse:
+                        uv, f_keep, f_fold, fold_mm2 = uv2, f_keep2, f_fold2, fold2
+                        info = dict(info2, boundary_weight=w2)
+                    info["fold_retry_mm2"] = retry
             info.update(geodesic_pairs=int(len(pairs[2])), geodesic_seconds=t_pairs)
             hidden = cut.v[np.unique(f_fold)] if len(f_fold) else None  # the peeled folds' mucosa: not on the view
             info["hidden_folds"] = hidden_folds(cut.v, f_fold, f_keep)
@@ -1087,18 +1092,22 @@ def _area_mm2(v: np.ndarray, f: np.ndarray) -> float:
     return float(triangle_frames(v, f)[1].sum()) if len(f) else 0.0
 
 
-def _flat_map(cut, uv0, pairs, bonly, s: float, weight: float, report):
+def _flat_map(cut, uv0, pairs, bonly, s: float, weight: float, report, check=None):
     """The flat map (uv mm) of the cut surface with boundary weight ``weight``, untangled and peeled (see
-    settle_flat_map): returns (uv, kept triangles, peeled fold triangles, info)."""
-    uv, info = arap(cut.v, cut.f, uv0, progress=report, pairs=pairs, boundary_weight=weight, boundary_only=bonly)
+    settle_flat_map): returns (uv, kept triangles, peeled fold triangles, info). ``report(fraction)``: progress;
+    ``check()``, when given, is called between the steps of every ARAP solve (it raises to abandon the map)."""
+    tick = None if check is None else (lambda fraction: check())  # noqa: E731
+    uv, info = arap(cut.v, cut.f, uv0, progress=report or tick, pairs=pairs, boundary_weight=weight,
+                    boundary_only=bonly)
     fb = info.pop("fallback_uv")
     info["flat_overlap_fraction"] = _overlap_fraction(uv, cut.f, s)
     if fb is not None and info["flat_overlap_fraction"] <= OVERLAP_TOLERANCE:
         fb = None                      # a small fold: peeled off the converged map
-    plain = lambda: arap(cut.v, cut.f, uv0, boundary_weight=weight, boundary_only=bonly)[0]  # noqa: E731 (no terms)
+    plain = lambda: arap(cut.v, cut.f, uv0, progress=tick, boundary_weight=weight,  # noqa: E731 (no terms)
+                         boundary_only=bonly)[0]
     # the whole boundary straightened, the cardia's opening too: it pries open a notch whose sides the map pressed
     # together, which would show the opening as a slot inside the mucosa (tried only then)
-    whole = None if bonly.all() else (lambda: arap(cut.v, cut.f, uv0, pairs=pairs,  # noqa: E731
+    whole = None if bonly.all() else (lambda: arap(cut.v, cut.f, uv0, progress=tick, pairs=pairs,  # noqa: E731
                                                     boundary_weight=weight)[0])
     uv, f_keep, f_fold = settle_flat_map(cut, (uv, whole, fb, plain), s, info)
     return uv, f_keep, f_fold, info

@@ -1,0 +1,96 @@
+"""Work started beside the main thread on a spare core, to be used only if it turns out to be needed.
+
+The isometric method's fold retry (a second flat map with the boundary held straighter) is needed only when the
+first flat map folds a flap over itself, which is known only once that map is done. Where the process has a second
+core to itself, the retry starts at the same time as the first map (both are numpy and SuperLU work that runs
+outside the interpreter lock) and is abandoned when it is not needed: the same result as running it after, in the
+time of one. Batch workers, which fill every core with runs of their own, turn this off (:data:`SPARE_CORES`).
+"""
+from __future__ import annotations
+
+import os
+import threading
+
+__all__ = ["SPARE_CORES", "spare_cores", "Beside"]
+
+#: Whether a run may start work beside its main thread that it may throw away. None: where this process may run
+#: on two cores or more; the batch workers set False (each core has a run of its own).
+SPARE_CORES: bool | None = None
+
+
+def _cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def spare_cores() -> bool:
+    """True when this process may start work it may throw away beside the main thread (:data:`SPARE_CORES`, else
+    two usable cores or more)."""
+    return bool(SPARE_CORES) if SPARE_CORES is not None else _cores() > 1
+
+
+class _Abandoned(Exception):
+    """Raised inside abandoned work by its ``check()``: the block that started it has been left."""
+
+
+class Beside:
+    """``fn(*args, check=check)`` started in a thread on entering the block, when a core is spare.
+
+    ``result()`` waits for it and returns its value or raises its exception; where nothing was started it runs
+    ``fn`` here (so the result is the same either way). Leaving the block abandons the work: ``fn`` calls ``check()``
+    between its steps and it raises once the block is left; the thread is joined before the block ends, so no work
+    outlives it (a Cancel, a signal or an error in the main thread included). Such work starts only where
+    :func:`spare_cores`. With ``checked=False``, ``fn(*args)`` takes no ``check``: work that is always used, done
+    beside other work wherever the process has two cores, whatever :data:`SPARE_CORES` says (it wastes nothing; an
+    abandoned one runs to its end).
+    """
+
+    def __init__(self, fn, *args, checked: bool = True):
+        self._fn, self._args = (fn, args) if checked else ((lambda *a, check: fn(*a)), args)
+        self._checked = checked
+        self._stop = threading.Event()
+        self._thread = None
+        self._out = None
+
+    def __enter__(self) -> "Beside":
+        if (spare_cores() if self._checked else _cores() > 1):
+            self._thread = threading.Thread(target=self._run, name="stomach-unfold-beside", daemon=True)
+            self._thread.start()
+        return self
+
+    def _check(self) -> None:
+        if self._stop.is_set():
+            raise _Abandoned
+
+    def _run(self) -> None:
+        try:
+            self._out = (True, self._fn(*self._args, check=self._check))
+        except BaseException as e:  # handed to result(); an abandoned run's _Abandoned is dropped with it
+            self._out = (False, e)
+
+    @property
+    def started(self) -> bool:
+        """Whether the work runs beside the main thread (False: result() runs it here)."""
+        return self._thread is not None
+
+    def result(self):
+        """The work's return value (waiting for it, or running it here when it was not started)."""
+        if self._thread is None:
+            return self._fn(*self._args, check=lambda: None)
+        self._thread.join()
+        ok, value = self._out
+        if not ok:
+            raise value
+        return value
+
+    def __exit__(self, *exc) -> bool:
+        self._stop.set()
+        if self._thread is not None:
+            try:
+                self._thread.join()
+            finally:  # a signal during the wait: the work stops at its next check; it is joined before going on
+                self._thread.join()
+        return False

@@ -1,0 +1,126 @@
+"""Work beside the main thread (spare_core.Beside): the same result as run in line, abandoned and joined on leaving."""
+import threading
+import time
+
+import numpy as np
+import pytest
+from StomachUnfoldLib import spare_core
+from StomachUnfoldLib.spare_core import Beside
+
+
+def _threads():
+    return {t for t in threading.enumerate() if t.name == "stomach-unfold-beside"}
+
+
+def _slow_sum(n, check):
+    total = 0
+    for i in range(n):
+        check()
+        time.sleep(0.002)
+        total += i
+    return total
+
+
+@pytest.mark.parametrize("spare", [True, False])
+def test_the_result_is_the_same_beside_or_in_line(monkeypatch, spare):
+    monkeypatch.setattr(spare_core, "SPARE_CORES", spare)
+    with Beside(_slow_sum, 20) as job:
+        assert job.started is spare
+        assert job.result() == sum(range(20))
+    assert not _threads()
+
+
+def test_an_error_in_the_work_is_raised_by_result_and_only_then(monkeypatch):
+    monkeypatch.setattr(spare_core, "SPARE_CORES", True)
+
+    def broken(check):
+        raise ValueError("broken on purpose")
+    with Beside(broken) as job:
+        pass                                    # never asked for: its error goes with it
+    with pytest.raises(ValueError, match="broken on purpose"):
+        with Beside(broken) as job:
+            job.result()
+    assert not _threads()
+
+
+def test_leaving_the_block_abandons_the_work_and_joins_its_thread(monkeypatch):
+    monkeypatch.setattr(spare_core, "SPARE_CORES", True)
+    steps = []
+
+    def endless(check):
+        while True:
+            check()
+            steps.append(1)
+            time.sleep(0.001)
+    t = time.perf_counter()
+    with pytest.raises(KeyError):
+        with Beside(endless) as job:
+            assert job.started
+            time.sleep(0.05)
+            raise KeyError("the main thread fails")   # e.g. a Cancel or a signal in the main thread
+    assert time.perf_counter() - t < 5.0 and steps and not _threads()
+    n = len(steps)
+    time.sleep(0.02)
+    assert len(steps) == n                              # stopped: nothing runs after the block
+
+
+def test_unchecked_work_runs_beside_even_where_nothing_may_be_thrown_away(monkeypatch):
+    monkeypatch.setattr(spare_core, "SPARE_CORES", False)
+    monkeypatch.setattr(spare_core, "_cores", lambda: 2)
+    main = threading.get_ident()
+    with Beside(threading.get_ident, checked=False) as job:
+        assert job.started and job.result() != main
+    monkeypatch.setattr(spare_core, "_cores", lambda: 1)
+    with Beside(threading.get_ident, checked=False) as job:
+        assert not job.started and job.result() == main
+    assert not spare_core.spare_cores()
+    monkeypatch.setattr(spare_core, "SPARE_CORES", None)
+    assert not spare_core.spare_cores()                  # one core: nothing beside
+
+
+def test_the_default_run_is_the_same_with_work_beside_and_without(monkeypatch):
+    # the tiny J folds 3 % of its wall: the fold retry's flat map runs (beside the first one, or after it), and the
+    # grade's mucosa points are drawn beside the method; the CT is scanned on file beside the parameter check
+    from StomachUnfoldEval.phantom import make_phantom
+    from StomachUnfoldLib.io import read_volume, write_volume
+    from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
+
+    ct, truth = make_phantom("j", "tiny")
+
+    def run(tmp):
+        path = str(tmp / "ct.nrrd")
+        write_volume(ct, path)  # gzip NRRD
+        res = unfold(read_volume(path, stream=True), np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                     UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
+        rep = res.report
+        return res.unfolded.array, rep["quality"], {k: v for k, v in rep["method"].items() if "seconds" not in k}
+
+    import pathlib
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:
+        monkeypatch.setattr(spare_core, "SPARE_CORES", True)
+        monkeypatch.setattr(spare_core, "_cores", lambda: 2)
+        a_beside, q_beside, m_beside = run(pathlib.Path(d))
+        monkeypatch.setattr(spare_core, "SPARE_CORES", False)
+        monkeypatch.setattr(spare_core, "_cores", lambda: 1)
+        a_line, q_line, m_line = run(pathlib.Path(d))
+    assert "fold_retry_mm2" in m_line
+    np.testing.assert_array_equal(a_beside, a_line)
+    assert q_beside == q_line and m_beside == m_line
+    assert not _threads()
+
+
+def test_a_bad_parameter_stops_the_scan_of_a_ct_on_file(tmp_path, monkeypatch):
+    from StomachUnfoldEval.phantom import make_phantom
+    from StomachUnfoldLib.errors import InputError
+    from StomachUnfoldLib.io import read_volume, write_volume
+    from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
+
+    monkeypatch.setattr(spare_core, "_cores", lambda: 2)
+    ct, truth = make_phantom("j", "tiny")
+    write_volume(ct, str(tmp_path / "ct.nrrd"))
+    vol = read_volume(str(tmp_path / "ct.nrrd"), stream=True)
+    bad = UnfoldParameters(method="isometric", air_threshold_hu=5000.0)
+    with pytest.raises(InputError, match="air_threshold_hu must be at least"):
+        unfold(vol, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]), bad)
+    assert not _threads()
