@@ -153,13 +153,20 @@ class _RayCaster:
         self.shape_ijk = np.array(mask.shape[::-1])
         self.step = float(step_mm)
         self.budget = budget
+        # the mask with a rim of False all round, flat: a nearest voxel off the grid is clipped onto the rim
+        self._rimmed = np.pad(np.asarray(mask, bool), 1).ravel()
+        nk, nj, ni = mask.shape
+        self._strides = np.array([1.0, ni + 2.0, (ni + 2.0) * (nj + 2.0)])   # exact in float64
+        self._last = np.array([ni, nj, nk], float)
 
     def _inside(self, ijk: np.ndarray) -> np.ndarray:
         """Mask value at continuous indices (..., 3) (i, j, k) by nearest voxel; False off the grid."""
-        idx = np.rint(ijk).astype(np.intp)
-        ok = np.all((idx >= 0) & (idx < self.shape_ijk), axis=-1)
-        idx = np.where(ok[..., None], idx, 0)
-        return ok & self.mask[idx[..., 2], idx[..., 1], idx[..., 0]]
+        idx = np.rint(ijk)
+        np.maximum(idx, -1.0, out=idx)
+        np.minimum(idx, self._last, out=idx)
+        flat = idx @ self._strides
+        flat += self._strides.sum()  # the rim: every index one further on
+        return self._rimmed[flat.astype(np.intp)]
 
     def exit_distance(self, p: np.ndarray, u: np.ndarray, t_max: np.ndarray, centre: bool = False) -> np.ndarray:
         """Distance (mm) along unit rays u (K,D,3) from points p (K,3) to the mask boundary, at most t_max (K,).
@@ -183,7 +190,8 @@ class _RayCaster:
             sel = order[a:b]
             S = int(n_s[sel].max())
             t = (np.arange(S) + 1.0) * self.step
-            q = p_idx[sel, None, None, :] + t[None, None, :, None] * u_idx[sel, :, None, :]
+            q = t[None, None, :, None] * u_idx[sel, :, None, :]
+            q += p_idx[sel, None, None, :]
             hit = ~(self._inside(q) | (t[None, None, :] > t_max[sel, None, None]))
             first = np.argmax(hit, axis=2)
             any_hit = hit.any(axis=2)

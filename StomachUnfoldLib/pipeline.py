@@ -119,15 +119,21 @@ class UnfoldResult:
             def path(name):
                 names[name] = os.path.join(out_dir, name)
                 return os.path.join(tmp, name)
-            suio.write_volume(self.unfolded, path("unfolded.nrrd"))
-            view = shade_first_hit(self.unfolded)  # shaded once, for the view and its distortion overlay
-            mapped = self.map_landmarks(landmarks_lps) if landmarks_lps else {}
-            self.report["view"] = write_view(self.unfolded, path("view.png"), view, self.distortion(),
-                                             self.orientation(), view_size, mapped,
-                                             (self.report["method"] or {}).get("hidden_folds"))
-            write_distortion(self.unfolded, self.distortion(), path("distortion.nrrd"), path("distortion.png"), view)
-            write_vtu(self.mesh.rest_lps, self.mesh.cells, path("model_rest.vtu"))
-            write_vtu(self.mesh.unfolded_lps, self.mesh.cells, path("model_unfolded.vtu"))
+            def volume_and_models():  # beside the view's files: SimpleITK's and VTK's writers leave the lock free
+                suio.write_volume(self.unfolded, os.path.join(tmp, "unfolded.nrrd"))
+                write_vtu(self.mesh.rest_lps, self.mesh.cells, os.path.join(tmp, "model_rest.vtu"))
+                write_vtu(self.mesh.unfolded_lps, self.mesh.cells, os.path.join(tmp, "model_unfolded.vtu"))
+            with Beside(volume_and_models, checked=False) as written:
+                path("unfolded.nrrd")
+                view = shade_first_hit(self.unfolded)  # shaded once, for the view and its distortion overlay
+                mapped = self.map_landmarks(landmarks_lps) if landmarks_lps else {}
+                self.report["view"] = write_view(self.unfolded, path("view.png"), view, self.distortion(),
+                                                 self.orientation(), view_size, mapped,
+                                                 (self.report["method"] or {}).get("hidden_folds"))
+                write_distortion(self.unfolded, self.distortion(), path("distortion.nrrd"), path("distortion.png"),
+                                 view)
+                path("model_rest.vtu"), path("model_unfolded.vtu")
+                written.result()
             suio.write_markups_curve(path("incision.mrk.json"), self.incision_lps, "incision", color=(1.0, 0.3, 0.2))
             suio.write_markups_curve(path("centerline.mrk.json"), self.centerline_lps, "centerline",
                                      color=(0.2, 0.8, 1.0))
