@@ -14,9 +14,8 @@ import os
 import resource
 import secrets
 import shutil
-import signal
 import time
-from contextlib import contextmanager, nullcontext
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,7 +27,7 @@ from .methods import Mesh, get_method
 from .params import DEFAULT_CELL_MM, UnfoldParameters
 from .progress import Progress
 from .report import Report
-from .spare_core import Beside
+from .spare_core import Beside, signals_held
 from .volume_file import FileArray
 
 __all__ = ["UnfoldParameters", "UnfoldResult", "unfold", "STAGES", "OUTPUT_NAMES", "WALL_MODEL_METHODS", "signals_held",
@@ -43,20 +42,6 @@ WALL_MODEL_METHODS = ("massspring", "paper")
 
 #: The run's parts and their share of the progress bar.
 STAGES = [("front end", 0.0, 0.24), ("method", 0.24, 0.93), ("quality", 0.93, 1.0)]
-
-
-@contextmanager
-def signals_held():
-    """Hold SIGINT, SIGTERM and SIGHUP (delivered when the block ends) where the platform allows."""
-    held = {signal.SIGINT, signal.SIGTERM} | ({signal.SIGHUP} if hasattr(signal, "SIGHUP") else set())
-    if not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def stage_names(method: str) -> list[str]:

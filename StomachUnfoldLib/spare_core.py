@@ -9,9 +9,11 @@ time of one. Batch workers, which fill every core with runs of their own, turn t
 from __future__ import annotations
 
 import os
+import signal
 import threading
+from contextlib import contextmanager
 
-__all__ = ["SPARE_CORES", "spare_cores", "Beside"]
+__all__ = ["SPARE_CORES", "spare_cores", "Beside", "signals_held"]
 
 #: Whether a run may start work beside its main thread that it may throw away. None: where this process may run
 #: on two cores or more; the batch workers set False (each core has a run of its own).
@@ -30,6 +32,20 @@ def spare_cores() -> bool:
     """True when this process may start work it may throw away beside the main thread (:data:`SPARE_CORES`, else
     two usable cores or more)."""
     return bool(SPARE_CORES) if SPARE_CORES is not None else _cores() > 1
+
+
+@contextmanager
+def signals_held():
+    """Hold SIGINT, SIGTERM and SIGHUP (delivered when the block ends) where the platform allows."""
+    held = {signal.SIGINT, signal.SIGTERM} | ({signal.SIGHUP} if hasattr(signal, "SIGHUP") else set())
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class _Abandoned(Exception):
@@ -56,9 +72,18 @@ class Beside:
         self._out = None
 
     def __enter__(self) -> "Beside":
-        if (spare_cores() if self._checked else _cores() > 1):
-            self._thread = threading.Thread(target=self._run, name="stomach-unfold-beside", daemon=True)
-            self._thread.start()
+        if not (spare_cores() if self._checked else _cores() > 1):
+            return self
+        try:
+            # started with the signals held (the thread keeps them held: they go to the main thread), so that a
+            # signal is handled only once the thread is running and known here; one handled as they are let through
+            # leaves __enter__ with an exception, and __exit__ would not run: the work is stopped and joined here
+            with signals_held():
+                self._thread = threading.Thread(target=self._run, name="stomach-unfold-beside", daemon=True)
+                self._thread.start()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
         return self
 
     def _check(self) -> None:

@@ -7,6 +7,7 @@ pylorus) and j bottom to top, as the viewer sees it.
 """
 from __future__ import annotations
 
+import errno
 import os
 
 import numpy as np
@@ -269,8 +270,25 @@ def write_png(img: np.ndarray, path: str) -> str:
     writer.SetInputData(vimg)
     writer.Write()
     if writer.GetErrorCode() or not os.path.exists(str(path)):
+        if _disk_full(writer.GetErrorCode(), str(path), img.nbytes):  # libpng says only "Write Error"
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         raise OSError(f"could not write the PNG {path}: check that its folder exists and is writable")
     return str(path)
+
+
+def _disk_full(code: int, path: str, nbytes: int) -> bool:
+    """Whether a failed write of about ``nbytes`` to ``path`` failed for want of space (VTK's error code, or the
+    folder's free space)."""
+    import shutil
+
+    from vtkmodules.vtkCommonMisc import vtkErrorCode
+
+    if code == vtkErrorCode.OutOfDiskSpaceError:
+        return True
+    try:
+        return shutil.disk_usage(os.path.dirname(os.path.abspath(path))).free < nbytes + (1 << 16)
+    except OSError:
+        return False
 
 
 def render_view(unfolded: Volume, path: str, threshold_hu: float = -400.0, min_pixels: int = 512) -> str:

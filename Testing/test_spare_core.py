@@ -124,3 +124,25 @@ def test_a_bad_parameter_stops_the_scan_of_a_ct_on_file(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="air_threshold_hu must be at least"):
         unfold(vol, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]), bad)
     assert not _threads()
+
+
+def test_a_signal_handled_as_the_work_starts_still_stops_and_joins_it(monkeypatch):
+    # a Ctrl-C or SIGTERM handled just after the thread began: __enter__ raises, so no __exit__ would run; the
+    # work must not outlive the block (at the interpreter's exit a thread inside VTK or ITK aborts the process)
+    monkeypatch.setattr(spare_core, "SPARE_CORES", True)
+    real = threading.Thread.start
+
+    def start(self):
+        real(self)
+        raise KeyboardInterrupt
+
+    def endless(check):
+        while True:
+            check()
+            time.sleep(0.001)
+    monkeypatch.setattr(threading.Thread, "start", start)
+    with pytest.raises(KeyboardInterrupt):
+        with Beside(endless):
+            pass
+    monkeypatch.undo()
+    assert not _threads()
