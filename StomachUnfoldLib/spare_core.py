@@ -1,10 +1,14 @@
-"""Work started beside the main thread on a spare core, to be used only if it turns out to be needed.
+"""Work started beside the main thread on a spare core, to be used if it turns out to be needed.
 
 The isometric method's fold retry (a second flat map with the boundary held straighter) is needed only when the
 first flat map folds a flap over itself, which is known only once that map is done. Where the process has a second
 core to itself, the retry starts at the same time as the first map (both are numpy and SuperLU work that runs
 outside the interpreter lock) and is abandoned when it is not needed: the same result as running it after, in the
-time of one. Batch workers, which fill every core with runs of their own, turn this off (:data:`SPARE_CORES`).
+time of one. Work that is always used goes beside too (the scan of a CT on file while the modules load, the grade's
+mucosa points during the method, the volume's and models' files while the view is drawn). Batch and benchmark
+workers, which fill every core with runs of their own, turn all of it off (:data:`SPARE_CORES`): two threads of one
+run on a core another run needs wait on each other for the interpreter lock (measured: a random stomach 10-20 %
+slower with two such workers on two cores).
 """
 from __future__ import annotations
 
@@ -15,8 +19,8 @@ from contextlib import contextmanager
 
 __all__ = ["SPARE_CORES", "spare_cores", "Beside", "signals_held"]
 
-#: Whether a run may start work beside its main thread that it may throw away. None: where this process may run
-#: on two cores or more; the batch workers set False (each core has a run of its own).
+#: Whether a run may start work beside its main thread. None: where this process may run on two cores or more;
+#: the batch and benchmark workers set False (each core has a run of its own).
 SPARE_CORES: bool | None = None
 
 
@@ -29,8 +33,8 @@ def _cores() -> int:
 
 
 def spare_cores() -> bool:
-    """True when this process may start work it may throw away beside the main thread (:data:`SPARE_CORES`, else
-    two usable cores or more)."""
+    """True when this process may start work beside the main thread (:data:`SPARE_CORES`, else two usable cores or
+    more)."""
     return bool(SPARE_CORES) if SPARE_CORES is not None else _cores() > 1
 
 
@@ -58,21 +62,19 @@ class Beside:
     ``result()`` waits for it and returns its value or raises its exception; where nothing was started it runs
     ``fn`` here (so the result is the same either way). Leaving the block abandons the work: ``fn`` calls ``check()``
     between its steps and it raises once the block is left; the thread is joined before the block ends, so no work
-    outlives it (a Cancel, a signal or an error in the main thread included). Such work starts only where
-    :func:`spare_cores`. With ``checked=False``, ``fn(*args)`` takes no ``check``: work that is always used, done
-    beside other work wherever the process has two cores, whatever :data:`SPARE_CORES` says (it wastes nothing; an
+    outlives it (a Cancel, a signal or an error in the main thread included). Work starts beside only where
+    :func:`spare_cores`. With ``checked=False``, ``fn(*args)`` takes no ``check`` (work that is always used; an
     abandoned one runs to its end).
     """
 
     def __init__(self, fn, *args, checked: bool = True):
         self._fn, self._args = (fn, args) if checked else ((lambda *a, check: fn(*a)), args)
-        self._checked = checked
         self._stop = threading.Event()
         self._thread = None
         self._out = None
 
     def __enter__(self) -> "Beside":
-        if not (spare_cores() if self._checked else _cores() > 1):
+        if not spare_cores():
             return self
         try:
             # started with the signals held (the thread keeps them held: they go to the main thread), so that a

@@ -64,18 +64,23 @@ def test_leaving_the_block_abandons_the_work_and_joins_its_thread(monkeypatch):
     assert len(steps) == n                              # stopped: nothing runs after the block
 
 
-def test_unchecked_work_runs_beside_even_where_nothing_may_be_thrown_away(monkeypatch):
-    monkeypatch.setattr(spare_core, "SPARE_CORES", False)
-    monkeypatch.setattr(spare_core, "_cores", lambda: 2)
+def test_work_goes_beside_only_where_a_core_is_spare(monkeypatch):
     main = threading.get_ident()
+    monkeypatch.setattr(spare_core, "SPARE_CORES", None)
+    monkeypatch.setattr(spare_core, "_cores", lambda: 2)
     with Beside(threading.get_ident, checked=False) as job:
         assert job.started and job.result() != main
     monkeypatch.setattr(spare_core, "_cores", lambda: 1)
     with Beside(threading.get_ident, checked=False) as job:
+        assert not job.started and job.result() == main      # one core: nothing beside
+    monkeypatch.setattr(spare_core, "_cores", lambda: 2)
+    monkeypatch.setattr(spare_core, "SPARE_CORES", False)     # a batch worker: the other cores run other cases
+    with Beside(threading.get_ident, checked=False) as job:
         assert not job.started and job.result() == main
-    assert not spare_core.spare_cores()
+    from StomachUnfoldLib.batch import run_case_in_worker
+    monkeypatch.setattr("StomachUnfoldLib.batch.run_case", lambda job, record: spare_core.spare_cores())
     monkeypatch.setattr(spare_core, "SPARE_CORES", None)
-    assert not spare_core.spare_cores()                  # one core: nothing beside
+    assert run_case_in_worker({}, {}) is False
 
 
 def test_the_default_run_is_the_same_with_work_beside_and_without(monkeypatch):
@@ -99,10 +104,8 @@ def test_the_default_run_is_the_same_with_work_beside_and_without(monkeypatch):
     import tempfile
     with tempfile.TemporaryDirectory() as d:
         monkeypatch.setattr(spare_core, "SPARE_CORES", True)
-        monkeypatch.setattr(spare_core, "_cores", lambda: 2)
         a_beside, q_beside, m_beside = run(pathlib.Path(d))
         monkeypatch.setattr(spare_core, "SPARE_CORES", False)
-        monkeypatch.setattr(spare_core, "_cores", lambda: 1)
         a_line, q_line, m_line = run(pathlib.Path(d))
     assert "fold_retry_mm2" in m_line
     np.testing.assert_array_equal(a_beside, a_line)
@@ -116,7 +119,7 @@ def test_a_bad_parameter_stops_the_scan_of_a_ct_on_file(tmp_path, monkeypatch):
     from StomachUnfoldLib.io import read_volume, write_volume
     from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
 
-    monkeypatch.setattr(spare_core, "_cores", lambda: 2)
+    monkeypatch.setattr(spare_core, "SPARE_CORES", True)
     ct, truth = make_phantom("j", "tiny")
     write_volume(ct, str(tmp_path / "ct.nrrd"))
     vol = read_volume(str(tmp_path / "ct.nrrd"), stream=True)
