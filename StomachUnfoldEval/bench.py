@@ -186,7 +186,7 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
 
 
 def _run_case_in_worker(case: dict, png_dir: str | None = None) -> dict:
-    """:func:`run_case` in a Dask worker: as a batch worker, no work that may be thrown away beside the run."""
+    """:func:`run_case` in a Dask worker: as in a batch worker, nothing runs beside the run's main thread."""
     from StomachUnfoldLib import spare_core
 
     spare_core.SPARE_CORES = False

@@ -336,7 +336,7 @@ def run_case(job: dict, record: dict) -> dict:
 
 def run_case_in_worker(job: dict, record: dict) -> dict:
     """:func:`run_case` in a worker process the batch owns: freed memory goes back to the system at once first, and
-    no work that may be thrown away is started beside the run (the other workers have the other cores)."""
+    nothing runs beside the run's main thread (``spare_core.SPARE_CORES``: the other workers have the other cores)."""
     from . import spare_core
     from .frontend import return_freed_memory
 

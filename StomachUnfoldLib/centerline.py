@@ -146,11 +146,9 @@ class _RayCaster:
     """
 
     def __init__(self, mask: np.ndarray, volume: Volume, step_mm: float, budget: int = 3_000_000):
-        self.mask = mask
         self.fwd = volume.direction * volume.spacing[None, :]  # index -> LPS mm (linear part)
         self.inv = np.linalg.inv(self.fwd)
         self.origin = volume.origin
-        self.shape_ijk = np.array(mask.shape[::-1])
         self.step = float(step_mm)
         self.budget = budget
         # the mask with a rim of False all round, flat: a nearest voxel off the grid is clipped onto the rim

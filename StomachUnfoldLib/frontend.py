@@ -380,9 +380,8 @@ def prepare(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     seconds: dict[str, float] = {}
     on_file = isinstance(getattr(ct, "array", None), FileArray)
-    if on_file and mask is None:  # a CT on file: one pass for the value range and the air (made once, maybe before)
-        ct.array.scan(params.air_threshold_hu)
-        seconds["reading"] = ct.array.scan_seconds  # and the crop's read below
+    if on_file and mask is None:  # a CT on file: one pass for the value range and the air (unless made before)
+        seconds["reading"] = ct.array.scan(params.air_threshold_hu)  # and the crop's read below
     warnings = check_volume(ct)
     cardia, pylorus, w = check_points(ct, cardia_lps, pylorus_lps, params.swap_check)
     warnings += w

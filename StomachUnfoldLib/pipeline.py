@@ -104,12 +104,13 @@ class UnfoldResult:
             def path(name):
                 names[name] = os.path.join(out_dir, name)
                 return os.path.join(tmp, name)
+            volume_p, rest_p, unfolded_p = path("unfolded.nrrd"), path("model_rest.vtu"), path("model_unfolded.vtu")
+
             def volume_and_models():  # beside the view's files: SimpleITK's and VTK's writers leave the lock free
-                suio.write_volume(self.unfolded, os.path.join(tmp, "unfolded.nrrd"))
-                write_vtu(self.mesh.rest_lps, self.mesh.cells, os.path.join(tmp, "model_rest.vtu"))
-                write_vtu(self.mesh.unfolded_lps, self.mesh.cells, os.path.join(tmp, "model_unfolded.vtu"))
+                suio.write_volume(self.unfolded, volume_p)
+                write_vtu(self.mesh.rest_lps, self.mesh.cells, rest_p)
+                write_vtu(self.mesh.unfolded_lps, self.mesh.cells, unfolded_p)
             with Beside(volume_and_models, checked=False) as written:
-                path("unfolded.nrrd")
                 view = shade_first_hit(self.unfolded)  # shaded once, for the view and its distortion overlay
                 mapped = self.map_landmarks(landmarks_lps) if landmarks_lps else {}
                 self.report["view"] = write_view(self.unfolded, path("view.png"), view, self.distortion(),
@@ -117,7 +118,6 @@ class UnfoldResult:
                                                  (self.report["method"] or {}).get("hidden_folds"))
                 write_distortion(self.unfolded, self.distortion(), path("distortion.nrrd"), path("distortion.png"),
                                  view)
-                path("model_rest.vtu"), path("model_unfolded.vtu")
                 written.result()
             suio.write_markups_curve(path("incision.mrk.json"), self.incision_lps, "incision", color=(1.0, 0.3, 0.2))
             suio.write_markups_curve(path("centerline.mrk.json"), self.centerline_lps, "centerline",
@@ -236,12 +236,13 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     with (Beside(ct.array.scan, params.air_threshold_hu) if on_file else nullcontext()) as scan:
         params.validate()
         method = get_method(params.method)
-        if on_file:
-            scan.result()
+        scan_s = scan.result() if on_file else 0.0
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     span = {name: (lo, hi) for name, lo, hi in STAGES}
     prep = prepare(ct, cardia_lps, pylorus_lps, params, mask=mask, incision_curve_lps=incision_curve_lps,
                    progress=prog.sub("front end", *span["front end"]))
+    if on_file:
+        prep.seconds["reading"] += scan_s
     if method.name in WALL_MODEL_METHODS:
         check_model_memory(prep)
     from .quality import mucosa_points, quality_metrics

@@ -113,7 +113,6 @@ class FileArray:
         self.materialised = 0
         self._range = None
         self._below = {}
-        self.scan_seconds = 0.0
 
     def __repr__(self):
         return f"FileArray({self.path!r}, shape={self.shape}, dtype={self.dtype})"
@@ -157,14 +156,14 @@ class FileArray:
         for k0 in range(0, self.shape[0], depth):
             yield k0, self.read_box((k0, 0, 0), (min(k0 + depth, self.shape[0]),) + self.shape[1:])
 
-    def scan(self, threshold_hu: float | None = None, check=None) -> None:
+    def scan(self, threshold_hu: float | None = None, check=None) -> float:
         """Read the file once: value range, non-finite count and (if given) the air below ``threshold_hu`` (HU).
 
-        ``check()``, when given, is called before each slab (it raises to stop the scan). ``scan_seconds`` is the
-        time the pass that made the cached results took (s)."""
+        ``check()``, when given, is called before each slab (it raises to stop the scan). Returns the seconds this
+        call spent reading (0 when its results were there already)."""
         need_air = threshold_hu is not None and float(threshold_hu) not in self._below
         if self._range is not None and not need_air:
-            return
+            return 0.0
         t0 = time.perf_counter()
         lo, hi, bad = np.inf, -np.inf, 0
         packed = np.zeros(self.shape[:2] + ((self.shape[2] + 7) // 8,), np.uint8) if need_air else None
@@ -185,7 +184,7 @@ class FileArray:
         self._range = (lo, hi, bad)
         if need_air:
             self._below[float(threshold_hu)] = PackedMask(packed, self.shape)
-        self.scan_seconds = time.perf_counter() - t0
+        return time.perf_counter() - t0
 
     def value_range(self) -> tuple[float, float, int]:
         """(lowest, highest finite value, number of NaN or infinite voxels), from one scan of the file."""
