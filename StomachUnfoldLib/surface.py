@@ -586,26 +586,34 @@ def view_raster(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: flo
 
 
 def _rim(uv, f, tri, bary, s):
-    """Extend the raster by the pixels just outside the flat map's outline: a pixel whose centre lies outside every
-    triangle but within half a pixel of its neighbour's triangle takes that triangle with clamped barycentrics, so
-    the mucosa reaches the view's edge instead of stopping half a pixel short of it. Inside the outline, pinholes and
-    cracks at most two pixels wide (where a fold was peeled, the two sides' edges do not quite meet) are closed the
-    same way from up to CRACK_PX pixels; wider holes stay holes."""
+    """Extend the raster to every pixel whose square the flat map reaches: a pixel whose centre lies outside every
+    triangle but whose square holds part of the outline takes the nearest point of that outline (its triangle, with
+    barycentrics on the edge), so every point of the map is drawn in the pixel it rounds to and the mucosa reaches the
+    view's edge. Inside the outline, pinholes and cracks at most two pixels wide (where a fold was peeled, the two
+    sides' edges do not quite meet) are closed from the nearest covered pixel's triangle up to CRACK_PX pixels away;
+    wider holes stay holes."""
     covered = tri >= 0
     if not covered.any():
         return tri, bary
-    rim = ndimage.binary_dilation(covered) & ~covered
-    if not rim.any():
-        return tri, bary
-    gap, (nj_idx, ni_idx) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    tri, bary = tri.copy(), bary.copy()
+    _outline_squares(uv, f, tri, bary, s)
+    _close_cracks(uv, f, tri, bary, s, tri >= 0)
+    return tri, bary
+
+
+def _close_cracks(uv, f, tri, bary, s, covered):
+    """Fill (in place) enclosed uncovered pixels of cracks at most 2 x CRACK_PX wide from the nearest covered pixel's
+    triangle, barycentrics clamped, where that triangle lies within CRACK_PX + 0.5 pixels."""
     enclosed = ndimage.binary_fill_holes(covered) & ~covered
-    thin = np.zeros_like(covered)
-    if enclosed.any():
-        lab, n = ndimage.label(enclosed)
-        widest = ndimage.maximum(gap, lab, index=np.arange(1, n + 1))
-        thin = np.isin(lab, 1 + np.flatnonzero(np.asarray(widest) <= CRACK_PX))
-    rim |= thin
-    jj, ii = np.nonzero(rim)
+    if not enclosed.any():
+        return
+    gap, (nj_idx, ni_idx) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    lab, n = ndimage.label(enclosed)
+    widest = ndimage.maximum(gap, lab, index=np.arange(1, n + 1))
+    thin = np.isin(lab, 1 + np.flatnonzero(np.asarray(widest) <= CRACK_PX))
+    jj, ii = np.nonzero(thin)
+    if not len(jj):
+        return
     t = tri[nj_idx[jj, ii], ni_idx[jj, ii]]
     a, b, c = uv[f[t, 0]], uv[f[t, 1]], uv[f[t, 2]]
     p = np.stack([ii * s, jj * s], 1)
@@ -613,16 +621,70 @@ def _rim(uv, f, tri, bary, s):
     den = np.where(np.abs(den) > 1e-12, den, 1.0)
     l1 = ((p[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (p[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])) / den
     l2 = ((b[:, 0] - a[:, 0]) * (p[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (p[:, 0] - a[:, 0])) / den
-    lam = np.stack([1 - l1 - l2, l1, l2], 1)
-    # within half a pixel of the triangle: the clamped point moves at most that far
-    q = np.clip(lam, 0.0, 1.0)
+    q = np.clip(np.stack([1 - l1 - l2, l1, l2], 1), 0.0, 1.0)
     q /= np.maximum(q.sum(1, keepdims=True), 1e-12)
-    reach = np.where(thin[jj, ii], (CRACK_PX + 0.5) * s, 0.5 * s)
-    near = np.linalg.norm(np.einsum("nc,ncx->nx", q, uv[f[t]]) - p, axis=1) <= reach
-    tri, bary = tri.copy(), bary.copy()
+    near = np.linalg.norm(np.einsum("nc,ncx->nx", q, uv[f[t]]) - p, axis=1) <= (CRACK_PX + 0.5) * s
     tri[jj[near], ii[near]] = t[near]
     bary[jj[near], ii[near]] = q[near]
-    return tri, bary
+
+
+def _outline_squares(uv, f, tri, bary, s, step_px: float = 0.5):
+    """Fill (in place) the uncovered pixels whose square an outline edge of the flat map crosses: each takes the point
+    of that edge, inside its square, nearest its centre (the nearest such edge's). A point of the map that rounds to
+    an uncovered pixel lies in a square the outline crosses (the segment from it to the pixel's centre leaves the
+    map in that square), so every such pixel is drawn. Candidates are the pixels round points ``step_px`` apart along
+    each edge and their eight neighbours; each is kept only if the edge meets its square (a clipped segment)."""
+    nj, ni = tri.shape
+    nf = len(f)
+    ends = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])          # (3F, 2): corner c to c+1
+    key = np.sort(ends, 1) @ np.array([len(uv), 1], np.int64)
+    _, first, count = np.unique(key, return_index=True, return_counts=True)
+    edge = first[count == 1]                                                  # outline edges (one triangle)
+    if not len(edge):
+        return
+    t_of, c_of = edge % nf, edge // nf                                        # triangle; its corners c, (c+1)%3
+    a, b = uv[ends[edge, 0]] / s, uv[ends[edge, 1]] / s                       # pixel units
+    n = np.ceil(np.linalg.norm(b - a, axis=1) / step_px).astype(np.int64) + 1
+    e = np.repeat(np.arange(len(edge)), n)
+    tau = (np.arange(len(e)) - np.repeat(np.cumsum(n) - n, n)) / np.repeat(np.maximum(n - 1, 1), n)
+    pix = np.rint(a[e] + tau[:, None] * (b[e] - a[e])).astype(np.int64)
+    nb = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 2)
+    pix = (pix[:, None, :] + nb[None]).reshape(-1, 2)
+    e = np.repeat(e, len(nb))
+    ok = (pix[:, 0] >= 0) & (pix[:, 0] < ni) & (pix[:, 1] >= 0) & (pix[:, 1] < nj)
+    e, pix = e[ok], pix[ok]
+    ok = tri[pix[:, 1], pix[:, 0]] < 0
+    if not ok.any():
+        return
+    pair = np.unique(np.stack([pix[ok, 1] * ni + pix[ok, 0], e[ok]], 1), axis=0)  # (pixel, edge) once each
+    lin, e = pair[:, 0], pair[:, 1]
+    centre = np.stack([lin % ni, lin // ni], 1).astype(float)
+    d = b[e] - a[e]
+    # the part [t0, t1] of each edge inside the pixel's square (Liang-Barsky), empty when t0 > t1
+    t0, t1 = np.zeros(len(e)), np.ones(len(e))
+    for x in range(2):
+        flat = np.abs(d[:, x]) < 1e-12
+        dd = np.where(flat, 1.0, d[:, x])
+        lo, hi = (centre[:, x] - 0.5 - a[e, x]) / dd, (centre[:, x] + 0.5 - a[e, x]) / dd
+        t0 = np.where(flat, t0, np.maximum(t0, np.minimum(lo, hi)))
+        t1 = np.where(flat, t1, np.minimum(t1, np.maximum(lo, hi)))
+        t1 = np.where(flat & (np.abs(a[e, x] - centre[:, x]) > 0.5), -1.0, t1)
+    meets = t0 <= t1 + 1e-12
+    if not meets.any():
+        return
+    lin, e, d, centre, t0, t1 = lin[meets], e[meets], d[meets], centre[meets], t0[meets], t1[meets]
+    w = np.clip(np.sum((centre - a[e]) * d, 1) / np.maximum(np.sum(d * d, 1), 1e-18), t0, np.maximum(t0, t1))
+    dist = np.linalg.norm(a[e] + w[:, None] * d - centre, axis=1)
+    order = np.lexsort((dist, lin))                                           # per pixel, its nearest edge first
+    lin, e, w = lin[order], e[order], w[order]
+    one = np.r_[True, lin[1:] != lin[:-1]]
+    lin, e, w = lin[one], e[one], w[one]
+    q = np.zeros((len(e), 3))
+    r = np.arange(len(e))
+    q[r, c_of[e]] = 1.0 - w
+    q[r, (c_of[e] + 1) % 3] = w
+    tri.reshape(-1)[lin] = t_of[e]
+    bary.reshape(-1, 3)[lin] = q
 
 
 def _flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):

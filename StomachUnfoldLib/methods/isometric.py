@@ -1183,8 +1183,9 @@ def largest_defect_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
     """Area (mm^2) of the largest region of a flat map (uv mm, pixel s mm) that no triangle covers inside its outline
     (a hole) or that two triangles cover (a fold left after peeling): what the judge counts as a failure part.
 
-    The outline is the view's (``surface.view_raster``): its rim of half a pixel closes the mouth of a notch whose
-    sides lie within a pixel, and the judge then sees the notch as a hole (a slot inside the mucosa)."""
+    The outline is the view's (``surface.view_raster``): its rim (every pixel whose square the map reaches) closes the
+    mouth of a notch whose sides lie within about a pixel, and the judge then sees the notch as a hole (a slot inside
+    the mucosa)."""
     from ..surface import view_raster
 
     q = uv - uv.min(0) + s
