@@ -106,6 +106,32 @@ def test_arap_from_a_mirrored_start_is_not_turned_inside_out():
     assert stretch_stats(v, f, uv)["stretch_max"] < 1 + 1e-3
 
 
+def test_as_similar_triangles_keep_a_shrunk_start_within_the_scale_range():
+    # a flat 10 x 10 mm sheet started at 0.8 x its size: ARAP grows it back to 1; triangles made as-similar-as-possible
+    # keep their scale where it lies within scale_range and are held at its floor below it; where only half of them
+    # are, the rigid half sets the scale and the similar half follows it (nothing shrinks that need not)
+    nu = nv = 11
+    U, V = np.meshgrid(np.arange(nu, dtype=float), np.arange(nv, dtype=float), indexing="ij")
+    rest = np.stack([U.ravel(), V.ravel(), np.zeros(nu * nv)], 1)
+    f = _grid(nu, nv)
+    start = 0.8 * rest[:, :2]
+    every = np.ones(len(f), bool)
+
+    def scale(uv):  # the map's mean length scale against the rest sheet
+        return float(np.median(np.linalg.norm(uv[f[:, 1]] - uv[f[:, 0]], axis=1)
+                               / np.linalg.norm(rest[f[:, 1], :2] - rest[f[:, 0], :2], axis=1)))
+    rigid, _ = arap(rest, f, start, max_iter=300, tol=1e-14)
+    kept, _ = arap(rest, f, start, max_iter=300, tol=1e-14, similar=every, scale_range=(0.5, 1.0))
+    held, _ = arap(rest, f, start, max_iter=300, tol=1e-14, similar=every, scale_range=(0.9, 1.0))
+    half = rest[:, 0] < 5.0
+    partly, _ = arap(rest, f, start, max_iter=300, tol=1e-14, similar=half[f].all(1), scale_range=(0.5, 1.0))
+    assert scale(rigid) == pytest.approx(1.0, abs=1e-3)
+    assert scale(kept) == pytest.approx(0.8, abs=1e-3)
+    assert scale(held) == pytest.approx(0.9, abs=1e-3)
+    assert scale(partly) == pytest.approx(1.0, abs=1e-3)
+    assert stretch_stats(rest, f, kept)["stretch_max"] <= 1.0 + 1e-6
+
+
 def test_boundary_self_intersection():
     sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
     loop = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
@@ -393,6 +419,21 @@ def test_a_large_fold_is_solved_again_with_the_boundary_held_straighter(tiny_run
     assert kept["hidden_fold_mm2"] == pytest.approx(again, rel=1e-6)
     monkeypatch.setattr(iso, "FOLD_RETRY_FRACTION", 1.0)
     assert "fold_retry_mm2" not in run()
+
+
+def test_a_fold_left_is_solved_again_with_the_wall_round_it_as_similar(tiny_run, monkeypatch):
+    import StomachUnfoldLib.methods.isometric as iso
+
+    ct, truth, res = tiny_run
+    m = res.report["method"]
+    before, after = m["similar_retry_mm2"]       # the tiny J still hides a large fold after the boundary retry
+    assert before > iso.SIMILAR_FROM_MM2 and m["similar_triangles"] > 0
+    assert m["hidden_fold_mm2"] == pytest.approx(after if m["similar_kept"] else before)
+    assert m["similar_kept"] == (after < iso.SIMILAR_GAIN * before)
+    run = lambda: unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),  # noqa: E731
+                         UnfoldParameters(method="isometric", wall_thickness_mm=4.0, quality=False)).report["method"]
+    monkeypatch.setattr(iso, "SIMILAR_FROM_MM2", 1e9)
+    assert "similar_retry_mm2" not in run()
 
 
 def test_the_strain_limit_relieves_a_stretched_boundary_and_leaves_the_rest():
