@@ -53,6 +53,10 @@ HELD_OUT_SEEDS = tuple(range(1000, 1030))
 #: settled (a failure seen on two volumes of HELD_OUT_SEEDS shaped the fold handling, so those seeds are no longer
 #: untouched for that change); never looked at before that run.
 FRESH_SEEDS = tuple(range(3000, 3030))
+#: A third held-out set for the flat map, first run on 2026-12-04 to decide on the heavy distance terms (held-out
+#: seed 1005 had shaped that change, and the fresh seeds had been run with it once). These volumes had been drawn
+#: before only by the point finder's study (``auto_points.AUTO_FRESH_SEEDS``), never unfolded.
+FRESH2_SEEDS = tuple(range(4000, 4030))
 #: The methods compared on every random stomach, on the same volumes in one run.
 FAMILY_METHODS = ("isometric", "massspring", "cylindrical", "lscm")
 
@@ -308,7 +312,8 @@ def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None
     cache = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "stomach-unfold", "phantoms")
     groups = [("stomachs-tune", TUNE_SEEDS[:3] if quick else TUNE_SEEDS),
               ("stomachs-held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS),
-              ("stomachs-fresh", () if quick else FRESH_SEEDS)]
+              ("stomachs-fresh", () if quick else FRESH_SEEDS),
+              ("stomachs-fresh-2", () if quick else FRESH2_SEEDS)]
     cases = []
     for group, seeds in groups:
         for seed in seeds:
@@ -787,6 +792,8 @@ FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults we
                  ("stomachs-held-out", "Random stomachs, seeds 1000-1029 (held out: never tuned on)"),
                  ("stomachs-fresh", "Random stomachs, seeds 3000-3029 (a second held-out set, first drawn after the "
                                     "2026-12-01 changes)"),
+                 ("stomachs-fresh-2", "Random stomachs, seeds 4000-4029 (a third held-out set, first unfolded after "
+                                      "the 2026-12-04 changes)"),
                  ("stomachs-hybrid", "Drawn stomachs inserted into the real CTs (held out)"))
 
 

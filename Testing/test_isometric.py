@@ -436,6 +436,27 @@ def test_a_fold_left_is_solved_again_with_the_wall_round_it_as_similar(tiny_run,
     assert "similar_retry_mm2" not in run()
 
 
+def test_a_map_that_folds_with_heavy_distance_terms_is_solved_again_with_light_ones(tiny_run, monkeypatch):
+    import StomachUnfoldLib.methods.isometric as iso
+
+    ct, truth, res = tiny_run
+    m = res.report["method"]
+    heavy, light = m["light_retry_mm2"]            # the tiny J folds with either weight: both maps were made
+    heavy_hole, light_hole = m["light_retry_defect_mm2"]
+    assert heavy > iso.LIGHT_FROM_MM2
+    light_kept = light + light_hole < heavy + heavy_hole
+    assert m["pair_weight"] == (iso.LIGHT_PAIR_WEIGHT if light_kept else iso.PAIR_WEIGHT)
+    assert m["hidden_fold_mm2"] == pytest.approx(light if light_kept else heavy)
+    assert m["flat_defect_mm2"] == pytest.approx(light_hole if light_kept else heavy_hole)
+    run = lambda: unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),  # noqa: E731
+                         UnfoldParameters(method="isometric", wall_thickness_mm=4.0, quality=False)).report["method"]
+    monkeypatch.setattr(iso, "LIGHT_FROM_MM2", 1e9)
+    monkeypatch.setattr(iso, "LIGHT_DEFECT_MM2", 1e9)
+    alone = run()                                  # never asked for: the heavy map stays, whatever it hides
+    assert "light_retry_mm2" not in alone and alone["pair_weight"] == iso.PAIR_WEIGHT
+    assert alone["hidden_fold_mm2"] == pytest.approx(heavy)
+
+
 def test_the_strain_limit_relieves_a_stretched_boundary_and_leaves_the_rest():
     # a flat 2 mm grid in 3D, its exact flat map, one boundary vertex pulled 2.4 mm outwards: its triangles 2.2x
     nu = nv = 15
