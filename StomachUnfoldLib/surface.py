@@ -19,6 +19,7 @@ INSIDE_MM = 2.0         # how far into the lumen (mm) each depth profile starts
 CLEARANCE_MM = 2.0      # profile length beyond the wall thickness (mm)
 CRACK_PX = 1.0          # pinholes and cracks inside the flat map's outline up to two pixels wide are closed (pixels)
 SURFACE_SIGMA_VOX = 1.0  # blur of the inner-wall field (voxels)
+CLEAR_RAMP = 0.3        # a lumen mask clears the profiles from 0.5 to 0.8 of its blurred field, in proportion
 
 
 def unit(v, eps=1e-12):
@@ -33,20 +34,30 @@ def perpendicular(v, t):
 
 def sample_profiles(crop: Volume, surf: np.ndarray, normal: np.ndarray, depths: np.ndarray,
                      lumen: np.ndarray | None, batch: int = 4_000_000) -> np.ndarray:
-    """CT HU (float32, (N, D)) at ``surf + depth * normal`` (LPS mm); lumen samples cleared to -1024 if given."""
+    """CT HU (float32, (N, D)) at ``surf + depth * normal`` (LPS mm); lumen samples cleared to -1024 if given.
+
+    A sample is lumen where the mask ``lumen`` (on the crop's grid), blurred as for the inner wall
+    (SURFACE_SIGMA_VOX voxels) and interpolated trilinearly, is at least one half: the cleared region ends on the
+    same smooth surface the profiles start from, not on the mask's voxel staircase (which on thick slices drew
+    terraces, a "wood grain", across the view).
+    """
     n, d = len(surf), len(depths)
     out = np.empty((n, d), np.float32)
     rows = max(1, batch // max(d, 1))
+    soft = None
+    if lumen is not None:
+        soft = ndimage.gaussian_filter(np.asarray(lumen, np.float32), SURFACE_SIGMA_VOX, output=np.float32)
     for a in range(0, n, rows):
         b = min(n, a + rows)
         p = surf[a:b, None, :] + depths[None, :, None] * normal[a:b, None, :]
         v = crop.sample(p.reshape(-1, 3), order=1, cval=-1024.0)
-        if lumen is not None:
-            ijk = np.rint(crop.lps_to_index(p.reshape(-1, 3))).astype(np.int64)
-            size = np.array(crop.size)
-            ins = np.all((ijk >= 0) & (ijk < size), axis=1)
-            ijk = np.clip(ijk, 0, size - 1)
-            v[ins & lumen[ijk[:, 2], ijk[:, 1], ijk[:, 0]]] = -1024.0
+        if soft is not None:
+            coords = crop.lps_to_index(p.reshape(-1, 3))[:, ::-1].T
+            occ = ndimage.map_coordinates(soft, coords, order=1, mode="constant", cval=0.0, prefilter=False)
+            # cleared in proportion across the surface (a ramp over CLEAR_RAMP of the field), so that where the
+            # view finds the wall moves smoothly with it, not in steps of the depth samples
+            alpha = np.clip((occ - 0.5) / CLEAR_RAMP, 0.0, 1.0)
+            v += alpha * (-1024.0 - v)
         out[a:b] = v.reshape(b - a, d)
     return out
 

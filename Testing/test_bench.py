@@ -1,6 +1,7 @@
 """The benchmark in miniature: cases run through Dask, failures become rows, tables and charts are written."""
 import json
 import os
+import platform
 
 import numpy as np
 import pytest
@@ -177,3 +178,35 @@ def test_zero_clicks_row_sits_beside_the_two_click_rows():
     assert "two-click grade on 1/2 (volumes with a two-click row)" in text
     cases = bench.zero_click_cases(quick=True)
     assert len(cases) == 6 and all(c["source"]["auto_points"] for c in cases)
+
+
+_WORKER_PROBE = """
+import resource, threading
+import numpy as np
+from StomachUnfoldEval import bench
+def work(out):
+    row = bench._run_case_in_worker(bench.Case("missing", {"real": "/nonexistent/ct.nii.gz"}, {}, method="isometric"))
+    assert row["ok"] is False
+    f0 = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+    for _ in range(200):                     # a flat map's temporaries, made and dropped in a worker's thread
+        t = np.ones(1 << 17)
+        del t
+    out.append(resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - f0)
+out = []
+th = threading.Thread(target=work, args=(out,))
+th.start()
+th.join()
+print(out[0])
+"""
+
+
+@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
+def test_a_bench_worker_keeps_freed_arrays_on_the_heap_under_dasks_trim_threshold():
+    # Dask starts its workers with MALLOC_TRIM_THRESHOLD_=65536: a task's thread then hands every freed 1 MiB array
+    # back and faults it in again (about 51,000 page faults here); the worker sets the command line's thresholds
+    import subprocess
+    import sys
+
+    env = dict(os.environ, MALLOC_TRIM_THRESHOLD_="65536")
+    out = subprocess.run([sys.executable, "-c", _WORKER_PROBE], capture_output=True, text=True, check=True, env=env)
+    assert int(out.stdout.split()[-1]) < 5000

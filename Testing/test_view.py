@@ -182,3 +182,37 @@ def test_display_volume():
     assert np.abs(view.display_volume(binary).array.astype(int) - binary.array).max() > 100
     blurred = voxelise(tilted_plane, blur_vox=0.7)
     np.testing.assert_array_equal(view.display_volume(blurred).array, blurred.array)
+
+
+def test_a_lumen_mask_on_thick_slices_clears_the_profiles_where_its_surface_is_not_on_its_staircase():
+    # a food-filled stomach (40 HU inside and out) whose label ends on a tilted plane, on 2 mm slices: the profiles
+    # start on the inner wall the method meshes (the label's blurred field at its level, terraced by the slices) and
+    # are cleared by the label; the wall must be found where they start, everywhere (before: cleared by the
+    # nearest voxel's label, up to half a slice off, which drew the terraces as rings across the view)
+    from scipy import ndimage as ndi
+
+    from StomachUnfoldLib.surface import sample_profiles, surface_field
+
+    nk, nj, ni = 30, 8, 120
+    sp = np.array([0.5, 0.5, 2.0])                                     # i, j, k (mm)
+    k_mm = np.arange(nk)[:, None, None] * sp[2]
+    i_mm = np.arange(ni)[None, None, :] * sp[0]
+    crop = Volume(np.full((nk, nj, ni), 40.0, np.float32), spacing=sp)
+    lumen = np.broadcast_to(k_mm < 20.0 + 0.1 * i_mm, (nk, nj, ni)).copy()
+    field, level = surface_field(crop, lumen, mask_given=True)
+    x = np.linspace(5.0, 55.0, 101)
+    kf = np.linspace(5.0, 20.0, 3001)                                  # k index, finely
+    col = ndi.map_coordinates(field, [kf[None].repeat(len(x), 0), np.full((len(x), len(kf)), 4.0),
+                                      (x / sp[0])[:, None].repeat(len(kf), 1)], order=1)
+    z = kf[np.argmax(col > level, axis=1)] * sp[2]                   # the inner wall's k (mm) above each x
+    assert np.ptp(z - 0.1 * x) > 0.5                                   # terraced: the slices show in the surface
+    surf = np.stack([x, np.full_like(x, 2.0), z], 1)                  # LPS = index * spacing (identity direction)
+    normal = np.tile([0.0, 0.0, 1.0], (len(x), 1))                    # out of the lumen: up k here
+    depths = np.arange(-4.0, 4.01, 0.25)                               # mm along the normal (wall side positive)
+    prof = sample_profiles(crop, surf, normal, depths, lumen)
+    first = np.argmax(prof > -400.0, axis=1)                           # the first sample in the wall from the lumen
+    assert np.all(first > 0) and np.all(prof[np.arange(len(x)), first] > -400.0)
+    lo, hi = prof[np.arange(len(x)), first - 1], prof[np.arange(len(x)), first]
+    cross = depths[first - 1] + (-400.0 - lo) / (hi - lo) * (depths[first] - depths[first - 1])
+    assert np.ptp(cross) < 0.2                                         # one smooth surface, not the terraces
+    assert np.abs(cross).max() < 1.0                                   # within a millimetre of where they start
