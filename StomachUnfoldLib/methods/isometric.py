@@ -242,11 +242,10 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     expense). ``boundary_weight`` adds the free boundary's straightness, weight x sum over boundary vertices of
     |uv_i - (uv_a + uv_b) / 2|^2 (a, b its neighbours along the boundary; mm^2), to the same constant matrix:
     where the surface has more circumference than the plane allows (the flare of a narrow canal into a wide
-    antrum) the boundary is compressed instead of ruffled into flaps that fold over the map. Returns (uv, info
-    with iterations, energy trace, flipped count).
+    antrum) the boundary is compressed instead of ruffled into flaps that fold over the map. The triangles
+    ``similar`` (bool (F,)) are as-similar-as-possible instead: their rotation times the best scale, held within
+    ``scale_range``. Returns (uv, info with iterations, energy trace, flipped count).
     """
-    from scipy.sparse import coo_matrix
-
     progress = progress or (lambda fraction: None)
     nv, nf = len(v), len(f)
     x, area = triangle_frames(v, f)
@@ -254,15 +253,9 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     w = np.clip(_half_edge_cot(x), *weight_clip) * good[:, None]     # half-edge weights (F,3)
     if stiffness is not None:
         w = w * np.asarray(stiffness, float)[:, None]
-    L = cot_laplacian(f, w, nv)
-    if boundary_weight > 0:
-        L = (L + boundary_weight * _boundary_second_difference(f, nv, boundary_only)).tocsc()
+    L = _system_matrix(f, w, nv, boundary_weight, boundary_only, pairs)
     if pairs is not None:
         pa, pb, pg, pw = pairs
-        off = coo_matrix((-pw, (pa, pb)), shape=(nv, nv))
-        Lp = off + off.T
-        L = (L + Lp - coo_matrix((np.asarray(Lp.sum(1)).ravel(), (np.arange(nv), np.arange(nv))),
-                                 shape=(nv, nv))).tocsc()
     # edge vectors of the rest triangles for half-edge c: from vertex c+1 to vertex c+2
     i1, i2 = [(c + 1) % 3 for c in range(3)], [(c + 2) % 3 for c in range(3)]
     dx = x[:, i2] - x[:, i1]                                          # (F,3,2)
@@ -349,6 +342,24 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
                 "arap_energy_relative": e_final / max(total_w, 1e-12),
                 "arap_energy_trace": [float(e) for e in energies[:: max(1, len(energies) // 10)]],
                 "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum()), "fallback_uv": fallback}
+
+
+def _system_matrix(f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float, boundary_only, pairs):
+    """ARAP's constant system matrix (sparse, nv x nv): the cotangent Laplacian of half-edge weights w (F,3), plus the
+    free boundary's straightness (``boundary_weight``, on ``boundary_only``) and the distance terms ``pairs``
+    (a, b, g mm, weight) as a graph Laplacian of their weights."""
+    from scipy.sparse import coo_matrix
+
+    L = cot_laplacian(f, w, nv)
+    if boundary_weight > 0:
+        L = (L + boundary_weight * _boundary_second_difference(f, nv, boundary_only)).tocsc()
+    if pairs is not None:
+        pa, pb, _, pw = pairs
+        off = coo_matrix((-pw, (pa, pb)), shape=(nv, nv))
+        Lp = off + off.T
+        L = (L + Lp - coo_matrix((np.asarray(Lp.sum(1)).ravel(), (np.arange(nv), np.arange(nv))),
+                                 shape=(nv, nv))).tocsc()
+    return L
 
 
 def _pinned_factor(L, f: np.ndarray):
