@@ -59,6 +59,9 @@ FRESH_SEEDS = tuple(range(3000, 3030))
 FRESH2_SEEDS = tuple(range(4000, 4030))
 #: The methods compared on every random stomach, on the same volumes in one run.
 FAMILY_METHODS = ("isometric", "massspring", "cylindrical", "lscm")
+#: Sizes of the isometric method's surface mesh (``isometric_vertices``; its default among them) run in one part
+#: (``meshsize``) on the tuning and held-out random stomachs: its speed against its accuracy, in the same hour.
+MESH_SIZES = (8000, 12000, 20000)
 
 
 def _cached(source: dict, cache_dir: str | None):
@@ -297,7 +300,58 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += family_cases(quick, data_dir)
     if "zeroclicks" in parts:
         cases += zero_click_cases(quick)
+    if "meshsize" in parts:
+        cases += mesh_size_cases(quick)
     return cases
+
+
+def mesh_size_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
+    """The default method on the tuning and held-out random stomachs with each of MESH_SIZES as its mesh's size."""
+    cache = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "stomach-unfold", "phantoms")
+    seeds = (TUNE_SEEDS[:2] + HELD_OUT_SEEDS[:2]) if quick else (TUNE_SEEDS + HELD_OUT_SEEDS)
+    return [Case(f"stomach-{seed}/{FAMILY_METHODS[0]}-v{n}", {"random": int(seed), "size": "small", "_cache": cache},
+                 {"isometric_vertices": n}, method=FAMILY_METHODS[0], group="mesh-size")
+            for n in MESH_SIZES for seed in seeds]
+
+
+def mesh_size_summary(rows: list[dict]) -> list[dict]:
+    """Per mesh size and seed set (tuning, held-out): median seconds, the marker distortion's ratio to the bound
+    (median, volumes within 1.5x), visible median, markers seen, excellent (the ``meshsize`` part's rows)."""
+    from StomachUnfoldLib.params import SurfaceParameters
+
+    default = SurfaceParameters().isometric_vertices
+    out = []
+    for label, seeds in (("tuning", set(TUNE_SEEDS)), ("held-out", set(HELD_OUT_SEEDS))):
+        for n in MESH_SIZES:
+            rs = [r for r in rows if r.get("ok") and r["group"] == "mesh-size"
+                  and r["params"].get("isometric_vertices") == n]
+            rs = [r for r in rs if int(r["name"].split("/")[0].split("-")[1]) in seeds and "markers" in r["quality"]]
+            if not rs:
+                continue
+            mk = [r["quality"]["markers"] for r in rs]
+            out.append({"set": label, "vertices": n, "default": n == default, "volumes": len(rs),
+                        "seconds_median": float(np.median([r["seconds"] for r in rs])),
+                        "ratio_median": float(np.median([m["ratio_to_bound"] for m in mk])),
+                        "within_1p5": sum(m["ratio_to_bound"] <= 1.5 for m in mk),
+                        "visible_median": float(np.median([r["quality"]["visible_fraction"] for r in rs])),
+                        "markers_seen": sum(m["seen"] for m in mk), "markers_total": sum(m["total"] for m in mk),
+                        "excellent": sum(r["quality"]["grade"] == "excellent" for r in rs)})
+    return out
+
+
+def mesh_size_markdown(rows: list[dict]) -> list[str]:
+    """results.md's table of :func:`mesh_size_summary` (nothing when the part was not run)."""
+    summ = mesh_size_summary(rows)
+    if not summ:
+        return []
+    L = ["## Isometric mesh size: speed against accuracy (random stomachs, two at once)\n",
+         "| set | isometric_vertices | volumes | s median | x bound median | within 1.5x | visible median % | markers "
+         "| excellent |", "|---|---|---|---|---|---|---|---|---|"]
+    for x in summ:
+        L.append(f"| {x['set']} | {x['vertices']}{' (default)' if x['default'] else ''} | {x['volumes']} | "
+                 f"{x['seconds_median']:.1f} | {x['ratio_median']:.2f} | {x['within_1p5']} | "
+                 f"{100 * x['visible_median']:.2f} | {x['markers_seen']}/{x['markers_total']} | {x['excellent']} |")
+    return L + [""]
 
 
 def zero_click_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
@@ -639,6 +693,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
         ax.set_title("Full-size CT: where the time goes")
         _save(fig, out_dir, "full_size_stages.png", made)
     _family_plot(ok, out_dir, made, plt)
+    _mesh_size_plot(rows, out_dir, made, plt)
     memory_plot(ok, out_dir, made, plt)
     return made
 
@@ -683,6 +738,31 @@ def place_labels(ax, points, fontsize: float = 7.0) -> None:
                     ha="left" if dx > 0 else "right" if dx < 0 else "center",
                     va="bottom" if dy > 0 else "top" if dy < 0 else "center",
                     arrowprops=dict(arrowstyle="-", lw=0.5, color="0.4") if ring > 1.0 else None)
+
+
+def _mesh_size_plot(rows: list[dict], out_dir: str, made: list[str], plt) -> None:
+    """mesh_size.png: per seed set, the isometric method's median seconds against its ratio to the flat-layout bound
+    (left) and volumes within 1.5x of it (right), one point per mesh size."""
+    summ = mesh_size_summary(rows)
+    if not summ:
+        return
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for label, colour in (("tuning", "tab:blue"), ("held-out", "tab:orange")):
+        xs = sorted((x for x in summ if x["set"] == label), key=lambda x: x["vertices"])
+        t = [x["seconds_median"] for x in xs]
+        for ax, key in ((axes[0], "ratio_median"), (axes[1], "within_1p5")):
+            ax.plot(t, [x[key] for x in xs], "o-", color=colour, label=label)
+            for x in xs:
+                ax.annotate(f"{x['vertices']}{'*' if x['default'] else ''}", (x["seconds_median"], x[key]),
+                            textcoords="offset points", xytext=(4, 4), fontsize=7)
+    axes[0].set(xlabel="median seconds per volume (two at once)", ylabel="median marker distortion / flat-layout bound",
+                title="isometric mesh size: accuracy against speed")
+    axes[1].set(xlabel="median seconds per volume (two at once)", ylabel="volumes within 1.5x of the bound (of 30)",
+                title="* the default isometric_vertices")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    _save(fig, out_dir, "mesh_size.png", made)
 
 
 def _family_plot(ok: list[dict], out_dir: str, made: list[str], plt) -> None:
@@ -787,6 +867,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
                   "(no label)")
     table("peers", "Peers on the same phantoms (the inverted column: wall folded back along the unrolling)")
     L += family_markdown(rows)
+    L += mesh_size_markdown(rows)
     L += memory_markdown(rows)
     for png in made:
         L.append(f"![{png}]({png})\n")
@@ -966,7 +1047,7 @@ def replot(out_dir: str = "docs/benchmark") -> list[str]:
 def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_size: bool = False,
                   scheduler: str | None = None, data_dir: str | None = None,
                   parts=("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling",
-                         "stomachs", "zeroclicks", "autopoints"),
+                         "stomachs", "zeroclicks", "meshsize", "autopoints"),
                   merge: bool = False) -> list[dict]:
     """Run the benchmark (all parts, or a quick subset) and write results.json, results.md and PNGs into out_dir.
 

@@ -110,6 +110,9 @@ class SurfaceParameters(_Group):
     isometric_surface: str = _p("opened", "isometric: the whole lumen surface opened where the graded mucosa ends "
                                 "(opened) or trimmed at the centreline's end planes (trimmed)",
                                 choices=("opened", "trimmed"))
+    isometric_vertices: int = _p(20000, "isometric: the most vertices of the surface mesh it flattens; fewer is "
+                                 "faster and coarser (12000 was 2.6x faster on the benchmark's random stomachs and "
+                                 "lost a little accuracy: docs/benchmark/README.md)", 1000, 200000)
 
 
 @dataclass

@@ -210,3 +210,32 @@ def test_a_bench_worker_keeps_freed_arrays_on_the_heap_under_dasks_trim_threshol
     env = dict(os.environ, MALLOC_TRIM_THRESHOLD_="65536")
     out = subprocess.run([sys.executable, "-c", _WORKER_PROBE], capture_output=True, text=True, check=True, env=env)
     assert int(out.stdout.split()[-1]) < 5000
+
+
+def test_mesh_size_part_charts_each_size_against_the_default(tmp_path):
+    cases = bench.mesh_size_cases(quick=False, cache_dir="/nonexistent")
+    assert {c["params"]["isometric_vertices"] for c in cases} == set(bench.MESH_SIZES)
+    assert {c["source"]["random"] for c in cases} == set(bench.TUNE_SEEDS) | set(bench.HELD_OUT_SEEDS)
+    assert {c["group"] for c in cases} == {"mesh-size"} and {c["method"] for c in cases} == {"isometric"}
+
+    from StomachUnfoldLib.params import SurfaceParameters
+
+    def row(seed, n, s, ratio, vis=0.999, seen=9, grade="excellent", group="mesh-size"):
+        q = {"grade": grade, "visible_fraction": vis, "markers": {"ratio_to_bound": ratio, "seen": seen, "total": 10}}
+        return {"name": f"stomach-{seed}/isometric-v{n}", "group": group, "method": "isometric", "ok": True,
+                "seconds": s, "quality": q, "params": {"isometric_vertices": n}}
+    default, small = SurfaceParameters().isometric_vertices, min(bench.MESH_SIZES)
+    assert default in bench.MESH_SIZES
+    rows = [row(0, default, 6.0, 1.4), row(1, default, 8.0, 1.6), row(0, small, 1.0, 1.7),
+            row(1, small, 3.0, 1.3, grade="good"), row(1000, default, 5.0, 1.2),
+            row(2, small, 0.5, 1.0, group="stomachs-tune")]                 # another part's row: not counted
+    summ = {(x["set"], x["vertices"]): x for x in bench.mesh_size_summary(rows)}
+    d = summ[("tuning", default)]
+    assert d["default"] and d["seconds_median"] == 7.0 and d["ratio_median"] == pytest.approx(1.5)
+    assert d["within_1p5"] == 1 and d["markers_seen"] == 18 and d["excellent"] == 2
+    c = summ[("tuning", small)]
+    assert not c["default"] and c["seconds_median"] == 2.0 and c["within_1p5"] == 1 and c["excellent"] == 1
+    assert ("held-out", small) not in summ and summ[("held-out", default)]["volumes"] == 1
+    md = "\n".join(bench.mesh_size_markdown(rows))
+    assert f"| tuning | {small} | 2 | 2.0 | 1.50 | 1 |" in md and f"{default} (default)" in md
+    assert bench.mesh_size_markdown(rows[-1:]) == []             # not run: no table

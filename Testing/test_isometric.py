@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from StomachUnfoldEval.phantom import make_phantom
-from StomachUnfoldLib.errors import Cancelled
+from StomachUnfoldLib.errors import Cancelled, InputError
 from StomachUnfoldLib.methods.isometric import (arap, boundary_self_intersects, cut_along_path, limit_stretch,
                                                 stretch_stats, untangle)
 from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
@@ -555,3 +555,17 @@ def test_every_point_of_a_flat_map_is_drawn_in_the_pixel_it_rounds_to():
 
     raw = rasterise(uv, f, shape, s, lambda fraction: None)[0] >= 0
     assert (tri >= 0).sum() > raw.sum()                               # the rim adds pixels beyond the raster's own
+
+
+def test_the_mesh_size_is_a_run_parameter(tiny_run):
+    # isometric_vertices caps the surface mesh the flat map is solved on (a coarser marching-cubes step): fewer
+    # vertices, the same anatomy (an excellent or good view of the tiny J either way)
+    ct, truth, res = tiny_run
+    m = res.report["method"]
+    small = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                   UnfoldParameters(method="isometric", wall_thickness_mm=4.0, isometric_vertices=1500))
+    ms = small.report["method"]
+    assert ms["marching_cubes_step"] > m["marching_cubes_step"] and ms["vertices"] < m["vertices"] / 2
+    assert small.report["quality"]["grade"] in ("excellent", "good")
+    with pytest.raises(InputError):
+        UnfoldParameters(isometric_vertices=10).validate()

@@ -30,6 +30,7 @@ from ..centerline import OPENING_RADIUS_MM, in_openings
 from ..correspondence import MapCorrespondence
 from ..errors import AnatomyError, SimulationError
 from ..frontend import timed_stage
+from ..params import SurfaceParameters
 from ..spare_core import Beside
 from ..surface import (compact, cut_surface, inner_surface, largest_component, orient_and_scale, perpendicular,
                        sample_flat_map, signed_area_2d, smooth_tangents, unit, vertex_normals)
@@ -39,7 +40,8 @@ __all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "l
            "triangle_frames", "cot_laplacian", "stretch_stats", "limit_stretch", "cut_along_path", "open_surface",
            "taubin_smooth", "IsoSurface", "MAX_MESH_VERTICES"]
 
-MAX_MESH_VERTICES = 20000
+#: the default of the ``isometric_vertices`` parameter (the mesh's size is a run's parameter; this is its default)
+MAX_MESH_VERTICES = SurfaceParameters().isometric_vertices
 #: fraction of doubly covered pixels of the final ARAP map above which the latest crossing-free iterate is offered
 #: as a fallback to ``settle_flat_map`` (which still keeps the converged map when peeling its fold leaves no defect
 #: the judge counts: with the distance terms an early iterate is far from converged, e.g. tuning seed 29 at 5.3x the
@@ -1080,9 +1082,9 @@ class IsometricFlattening(Method):
             prep = replace(prep, mask_given=True)
         with timed_stage(progress, "surface", seconds, 0.0, 0.3) as report:
             if prep.params.isometric_surface == "trimmed":
-                cut = cut_surface(prep, MAX_MESH_VERTICES, warnings)
+                cut = cut_surface(prep, prep.params.isometric_vertices, warnings)
             else:
-                cut = open_surface(prep, MAX_MESH_VERTICES, warnings, progress=report)
+                cut = open_surface(prep, prep.params.isometric_vertices, warnings, progress=report)
         with timed_stage(progress, "flat map", seconds, 0.3, 0.6) as report:
             t0 = time.perf_counter()
             uv0 = _start_map(cut)
