@@ -1,8 +1,8 @@
 """Work started beside the main thread on a spare core, to be used if it turns out to be needed.
 
-The isometric method's fold retry (a second flat map with the boundary held straighter) is needed only when the
-first flat map folds a flap over itself, which is known only once that map is done. Where the process has a second
-core to itself, the retry starts at the same time as the first map (both are numpy and SuperLU work that runs
+The isometric method's map with light distance terms is needed only when the map with heavy ones folds a flap over
+itself that the judge would count, which is known only once that map is done. Where the process has a second
+core to itself, the light map starts at the same time as the heavy one (both are numpy and SuperLU work that runs
 outside the interpreter lock) and is abandoned when it is not needed: the same result as running it after, in the
 time of one. Work that is always used goes beside too (the scan of a CT on file while the modules load, the grade's
 mucosa points during the method, the volume's and models' files while the view is drawn). Batch and benchmark

@@ -84,8 +84,9 @@ def test_work_goes_beside_only_where_a_core_is_spare(monkeypatch):
 
 
 def test_the_default_run_is_the_same_with_work_beside_and_without(monkeypatch):
-    # the tiny J folds 3 % of its wall: the fold retry's flat map runs (beside the first one, or after it), and the
-    # grade's mucosa points are drawn beside the method; the CT is scanned on file beside the parameter check
+    # the tiny J folds with the heavy distance terms: the light terms' map runs (beside the heavy one, or after it)
+    # and is kept, the grade's mucosa points are drawn beside the method; the CT is scanned on file beside the
+    # parameter check
     from StomachUnfoldEval.phantom import make_phantom
     from StomachUnfoldLib.io import read_volume, write_volume
     from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
@@ -107,7 +108,7 @@ def test_the_default_run_is_the_same_with_work_beside_and_without(monkeypatch):
         a_beside, q_beside, m_beside = run(pathlib.Path(d))
         monkeypatch.setattr(spare_core, "SPARE_CORES", False)
         a_line, q_line, m_line = run(pathlib.Path(d))
-    assert "fold_retry_mm2" in m_line
+    assert "fold_retry_mm2" in m_line and "light_retry_mm2" in m_line
     np.testing.assert_array_equal(a_beside, a_line)
     assert q_beside == q_line and m_beside == m_line
     assert not _threads()
