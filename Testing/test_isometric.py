@@ -569,3 +569,91 @@ def test_the_mesh_size_is_a_run_parameter(tiny_run):
     assert small.report["quality"]["grade"] in ("excellent", "good")
     with pytest.raises(InputError):
         UnfoldParameters(isometric_vertices=10).validate()
+
+
+def _peel_overlaps_reference(f, uv, rounds=40):
+    """peel_overlaps as first written: each round the boundary from a sort of the kept triangles' edges and the
+    overlap test over a k-d tree of the kept triangles alone."""
+    from StomachUnfoldLib.methods.isometric import overlapping_triangles
+
+    f0 = len(f)
+    for _ in range(rounds):
+        ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        _, inv, cnt = np.unique(ee, axis=0, return_inverse=True, return_counts=True)
+        on_b = np.flatnonzero((cnt == 1)[inv.ravel()].reshape(3, -1).any(0))
+        drop = on_b[overlapping_triangles(f, uv, query=on_b)]
+        if len(drop) == 0:
+            break
+        f = f[np.isin(np.arange(len(f)), drop, invert=True)]
+    return f, f0 - len(f)
+
+
+def test_peeling_with_one_tree_drops_what_a_tree_per_round_drops():
+    from StomachUnfoldLib.methods.isometric import peel_overlaps
+
+    n = 31
+    U, V = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    uv = np.stack([U.ravel(), V.ravel()], 1)
+    f = _grid(n, n)
+    # a flap: the last eight columns folded back over the sheet (mirrored about u = 22), a fold many rounds deep
+    flap = uv[:, 0] > 22
+    uv[flap, 0] = 44 - uv[flap, 0] + 0.3
+    uv[flap, 1] += 0.2
+    kept, n_drop, dropped = peel_overlaps(f, uv, return_dropped=True)
+    ref, n_ref = _peel_overlaps_reference(f, uv)
+    assert n_drop == n_ref > 100                 # the flap is peeled over several rounds, dropped ones crowding
+    np.testing.assert_array_equal(kept, ref)
+    assert len(dropped) == n_drop and not (set(map(tuple, dropped)) & set(map(tuple, kept)))
+
+
+def test_nearest_alive_triangles_are_the_nearest_among_those_left():
+    from scipy.spatial import cKDTree
+
+    from StomachUnfoldLib.methods.isometric import nearest_alive
+
+    rng = np.random.default_rng(5)
+    c = rng.uniform(0, 50, size=(3000, 2))
+    alive = rng.uniform(size=3000) > 0.3
+    alive[np.linalg.norm(c - 25.0, axis=1) < 10.0] = False   # a crowd of dropped ones: queries there ask again
+    own = np.flatnonzero(alive)[::7]
+    got = nearest_alive(cKDTree(c), c, own, alive, 16)
+    left = np.flatnonzero(alive)
+    d = np.linalg.norm(c[own][:, None] - c[left][None], axis=2)
+    want = left[np.argsort(d, axis=1, kind="stable")[:, :16]]
+    np.testing.assert_array_equal(np.sort(got, 1), np.sort(want, 1))
+    assert alive[got].all()
+
+
+def test_arap_uses_a_stored_factorisation_only_for_the_same_system():
+    v, f, _ = _sphere()
+    keep = v[:, 2] < 12.0                                     # a cap cut off: a disc
+    idx = np.flatnonzero(keep)
+    remap = np.full(len(v), -1)
+    remap[idx] = np.arange(len(idx))
+    f2 = remap[f[keep[f].all(1)]]
+    v2 = v[idx]
+    uv0 = v2[:, :2].copy()
+    bonly = np.ones(len(v2), bool)
+    alone, _ = arap(v2, f2, uv0, boundary_weight=2.0, boundary_only=bonly)
+    factors = {}
+    first, _ = arap(v2, f2, uv0, boundary_weight=2.0, boundary_only=bonly, factors=factors)
+    again, _ = arap(v2, f2, uv0, boundary_weight=2.0, boundary_only=bonly, factors=factors)
+    assert len(factors) == 1
+    np.testing.assert_array_equal(first, alone)
+    np.testing.assert_array_equal(again, alone)
+    other, _ = arap(v2, f2, uv0, boundary_weight=8.0, boundary_only=bonly, factors=factors)
+    assert len(factors) == 2                                  # another boundary weight: its own system
+    assert np.abs(other - alone).max() > 1e-6
+
+
+def test_the_fallback_is_the_latest_iterate_whose_boundary_does_not_cross():
+    from StomachUnfoldLib.methods.isometric import latest_uncrossed
+
+    sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    bow = np.array([[0, 0], [1, 1], [1, 0], [0, 1]], float)
+    loop = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+    its = [sq, sq + 1, bow, sq + 2, bow]                     # iterations 1..5: the last crosses
+    k, uv = latest_uncrossed(its, loop, min_ok_iter=1)
+    assert k == 4 and np.array_equal(uv, sq + 2) and uv is not its[3]
+    assert latest_uncrossed(its, loop, min_ok_iter=5) == (0, None)    # none far enough
+    assert latest_uncrossed(its[:4], loop, min_ok_iter=1) == (0, None)  # the last does not cross: no fallback

@@ -230,7 +230,8 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
          weight_clip: tuple = (1e-3, 1e3), injective: bool = True, min_ok_iter: int = 5,
          pairs: tuple | None = None, stiffness: np.ndarray | None = None,
          boundary_weight: float = 0.0, boundary_only: np.ndarray | None = None,
-         similar: np.ndarray | None = None, scale_range: tuple = (0.5, 1.0)) -> tuple[np.ndarray, dict]:
+         similar: np.ndarray | None = None, scale_range: tuple = (0.5, 1.0), factors: dict | None = None
+         ) -> tuple[np.ndarray, dict]:
     """ARAP flat map (V,2 mm) of a disc mesh (v LPS mm, f triangles) from the start map uv0; free boundary.
 
     Local/global iterations (Liu et al. 2008): per-triangle closest rotations of the current Jacobians, then one
@@ -246,7 +247,10 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     where the surface has more circumference than the plane allows (the flare of a narrow canal into a wide
     antrum) the boundary is compressed instead of ruffled into flaps that fold over the map. The triangles
     ``similar`` (bool (F,)) are as-similar-as-possible instead: their rotation times the best scale, held within
-    ``scale_range``. Returns (uv, info with iterations, energy trace, flipped count).
+    ``scale_range``. ``factors``: a dict kept by the caller for maps of this one mesh (v, f): the factorised system
+    is stored there and used again by a later call with the same boundary weight, ``boundary_only`` and ``pairs``
+    objects (the as-similar-as-possible retry solves its parent map's system). Returns (uv, info with iterations,
+    energy trace, flipped count).
     """
     progress = progress or (lambda fraction: None)
     nv, nf = len(v), len(f)
@@ -255,20 +259,19 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     w = np.clip(_half_edge_cot(x), *weight_clip) * good[:, None]     # half-edge weights (F,3)
     if stiffness is not None:
         w = w * np.asarray(stiffness, float)[:, None]
-    L = _system_matrix(f, w, nv, boundary_weight, boundary_only, pairs)
+    lu, pin, keep, col_pin = _stored_factor(factors if stiffness is None else None, f, w, nv, boundary_weight,
+                                            boundary_only, pairs)
     if pairs is not None:
         pa, pb, pg, pw = pairs
     # edge vectors of the rest triangles for half-edge c: from vertex c+1 to vertex c+2
     i1, i2 = [(c + 1) % 3 for c in range(3)], [(c + 2) % 3 for c in range(3)]
     dx = x[:, i2] - x[:, i1]                                          # (F,3,2)
-    lu, pin, keep, col_pin = _pinned_factor(L, f)
-    overlap_stop = 0
     bedges = _boundary_edges(f) if injective else None
     uv = np.array(uv0, float)
     # the triangles' rest frames are counter-clockwise: a mirrored start map would have to turn inside out
     if np.sum(signed_area_2d(uv, f)[good] > 0) < 0.5 * good.sum():
         uv[:, 1] *= -1.0
-    last_ok = None                             # the latest iterate whose free boundary does not cross itself
+    iterates = []                              # every iterate: the latest whose free boundary does not cross is found last
     energies = []
     # half-edges c-major (index c * F + t: half-edge c of triangle t), each coordinate apart: contiguous sums
     fa, fb = f[:, i1].T.ravel(), f[:, i2].T.ravel()                      # half-edge tails and heads (3F)
@@ -311,7 +314,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         du0, du1, r0, r1 = rotations(uv)
         e = energy(du0, du1, r0, r1)
         # global step: L u = b, b_head += w R dx, b_tail -= w R dx
-        b = np.stack([ends @ (w3 * r0).ravel(), ends @ (w3 * r1).ravel()], 1)
+        b = ends @ np.stack([(w3 * r0).ravel(), (w3 * r1).ravel()], 1)
         if pairs is not None:
             dab = uv[pb] - uv[pa]
             ln = np.maximum(np.linalg.norm(dab, axis=1), 1e-9)
@@ -324,17 +327,15 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         if not np.all(np.isfinite(new)):
             raise SimulationError("the ARAP flat map diverged (non-finite coordinates); the surface mesh is broken")
         uv = new
-        if bedges is not None and not boundary_self_intersects(uv, bedges):
-            last_ok = (it, uv.copy())
+        if bedges is not None:
+            iterates.append(uv)                # each a new array: kept to find the latest without crossings at the end
         progress(it / max_iter)
         if len(energies) >= 2 and abs(energies[-2] - energies[-1]) <= tol * max(energies[-1], 1e-12):
             break
-    fallback = None
-    if bedges is not None and last_ok is not None and last_ok[0] < it and last_ok[0] >= min_ok_iter \
-            and boundary_self_intersects(uv, bedges):
-        # the free boundary came to overlap itself (a strongly bent or tapering tube wraps round): the latest map
-        # without overlap, if ARAP had got far enough there, is offered to the caller
-        overlap_stop, fallback = last_ok
+    # the free boundary came to overlap itself (a strongly bent or tapering tube wraps round): the latest map
+    # without overlap, if ARAP had got far enough there, is offered to the caller
+    overlap_stop, fallback = latest_uncrossed(iterates, bedges, min_ok_iter) if bedges is not None else (0, None)
+    del iterates
     e_final = energy(*rotations(uv))
     sa = signed_area_2d(uv, f)
     major = np.sign(np.sum(np.sign(sa[good]))) or 1.0
@@ -344,6 +345,33 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
                 "arap_energy_relative": e_final / max(total_w, 1e-12),
                 "arap_energy_trace": [float(e) for e in energies[:: max(1, len(energies) // 10)]],
                 "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum()), "fallback_uv": fallback}
+
+
+def _stored_factor(factors: dict | None, f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float,
+                   boundary_only, pairs) -> tuple:
+    """ARAP's factorised system (see _pinned_factor) for these terms: taken from ``factors`` (a dict the caller
+    keeps for one mesh) when a map with the same boundary weight, ``boundary_only`` and ``pairs`` objects made it,
+    else made (and stored there)."""
+    key = (float(boundary_weight), id(boundary_only), id(pairs))
+    cached = factors.get(key) if factors is not None else None
+    if cached is not None and cached[0] is boundary_only and cached[1] is pairs:
+        return cached[2]
+    out = _pinned_factor(_system_matrix(f, w, nv, boundary_weight, boundary_only, pairs), f)
+    if factors is not None:                     # the objects are held with it: their ids stay theirs
+        factors[key] = (boundary_only, pairs, out)
+    return out
+
+
+def latest_uncrossed(iterates: list, bedges: np.ndarray, min_ok_iter: int) -> tuple:
+    """(iteration, a copy of its map) of the latest ARAP iterate (``iterates[k - 1]``: iteration k, V x 2 mm) whose
+    free boundary (``bedges``) does not cross itself, from ``min_ok_iter`` on, when the last one crosses; else
+    (0, None)."""
+    if not iterates or not boundary_self_intersects(iterates[-1], bedges):
+        return 0, None
+    for k in range(len(iterates) - 1, min_ok_iter - 1, -1):
+        if not boundary_self_intersects(iterates[k - 1], bedges):
+            return k, iterates[k - 1].copy()
+    return 0, None
 
 
 def _system_matrix(f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float, boundary_only, pairs):
@@ -495,9 +523,10 @@ def untangle(uv: np.ndarray, f: np.ndarray, rounds: int = 20) -> tuple[np.ndarra
         mv = (A @ mv.astype(float) > 0) | mv
         if _ < rounds // 2:
             mv &= ~on_b                           # boundary vertices move too once the interior alone did not do
+        idx = np.flatnonzero(mv)
+        A_mv, deg_mv = A[idx], deg[idx, None]     # only the moving vertices' rows: the same sums, fewer of them
         for _ in range(5):
-            avg = (A @ uv) / deg[:, None]
-            uv[mv] = avg[mv]
+            uv[idx] = (A_mv @ uv) / deg_mv
         bad = flipped()
     return uv, before, int(bad.sum())
 
@@ -510,24 +539,33 @@ def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1
     the smoothed surface itself leaves a flipped sliver inside; they are peeled off (the mucosa under them maps to
     their neighbours). Returns (kept triangles, number dropped).
     """
-    f0 = len(f)
+    ue, eid = _edge_ids(f)
+    # neither map moves while peeling: each edge's stretch and each triangle's signed area are computed once
+    long_all = (np.linalg.norm(uv[ue[:, 0]] - uv[ue[:, 1]], axis=1)
+                > limit * np.linalg.norm(v[ue[:, 0]] - v[ue[:, 1]], axis=1))[eid].any(0)
+    sa_all = signed_area_2d(uv, f)
+    alive = np.arange(len(f))
     for _ in range(rounds):
-        ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        ue, inv, cnt = _unique_rows(ee, return_inverse=True, return_counts=True)
+        e = eid[:, alive]
         on_b = np.zeros(len(v), bool)
-        on_b[ue[cnt == 1].ravel()] = True
-        sa = signed_area_2d(uv, f)
+        on_b[ue[np.bincount(e.ravel(), minlength=len(ue)) == 1].ravel()] = True
+        sa = sa_all[alive]
         major = np.sign(np.sum(np.sign(sa))) or 1.0
-        l0 = np.linalg.norm(v[ue[:, 0]] - v[ue[:, 1]], axis=1)
-        l1 = np.linalg.norm(uv[ue[:, 0]] - uv[ue[:, 1]], axis=1)
-        long_e = (l1 > limit * l0)[inv.ravel()].reshape(3, -1).any(0)
         flip = np.sign(sa) != major
         # on the boundary: flipped or stretched; inside: only flipped slivers (under a tenth of the median area)
-        bad = ((flip | long_e) & on_b[f].any(1)) | (flip & (np.abs(sa) < 0.1 * np.median(np.abs(sa))))
+        bad = ((flip | long_all[alive]) & on_b[f[alive]].any(1)) | (flip & (np.abs(sa) < 0.1 * np.median(np.abs(sa))))
         if not bad.any():
             break
-        f = f[~bad]
-    return f, f0 - len(f)
+        alive = alive[~bad]
+    return f[alive], len(f) - len(alive)
+
+
+def _edge_ids(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique undirected edges (E,2) of triangles f and each triangle's edges as indices into them ((3,F): row c the
+    edge from corner c to corner c+1): a subset's edge counts are then one bincount, not a sort."""
+    ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    ue, inv = _unique_rows(ee, return_inverse=True)
+    return ue, inv.reshape(3, -1)
 
 
 def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16, query=None) -> np.ndarray:
@@ -543,8 +581,13 @@ def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16, q
     P = uv[f]                                                   # (F,3,2)
     c = P.mean(1)
     own = np.arange(len(f)) if query is None else np.asarray(query, int)
-    k = min(candidates, len(f))
-    _, nb = cKDTree(c).query(c[own], k=k)                       # (Q,k) nearby triangles
+    _, nb = cKDTree(c).query(c[own], k=min(candidates, len(f)))  # (Q,k) nearby triangles
+    return _inside_another(P, c, own, nb.reshape(len(own), -1))
+
+
+def _inside_another(P: np.ndarray, c: np.ndarray, own: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """Bool (Q,): the centroid c[own] (mm) lies strictly inside one of the triangles nb (Q,k indices into the
+    corners P (F,3,2 mm)) other than itself."""
     a, b, d = P[nb, 0], P[nb, 1], P[nb, 2]                      # (Q,k,2)
     q = c[own][:, None, :]
     den = (b[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])
@@ -556,26 +599,57 @@ def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16, q
     return inside.any(1)
 
 
-def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40, return_dropped: bool = False):
+def nearest_alive(tree, c: np.ndarray, own: np.ndarray, alive: np.ndarray, k: int) -> np.ndarray:
+    """The k triangles nearest to the centroids c[own] (mm) among those still ``alive`` (bool (F,)), nearest first
+    ((Q,k) indices): one k-d tree of every centroid (``tree``) asked for more neighbours where dropped ones crowd."""
+    out = np.empty((len(own), k), np.int64)
+    todo = np.arange(len(own))
+    K = min(len(c), 2 * k)
+    while len(todo):
+        _, nb = tree.query(c[own[todo]], k=K)
+        nb = nb.reshape(len(todo), -1)
+        ok = np.zeros(nb.shape, bool)
+        found = nb < len(c)
+        ok[found] = alive[nb[found]]
+        enough = ok.sum(1) >= k
+        first = np.argsort(~ok[enough], axis=1, kind="stable")[:, :k]    # the alive ones, in order of distance
+        out[todo[enough]] = np.take_along_axis(nb[enough], first, 1)
+        todo = todo[~enough]
+        K = min(len(c), 4 * K)
+    return out
+
+
+def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40, return_dropped: bool = False,
+                  candidates: int = 16):
     """Peel a flap of the flat map folded over the rest, from its free edge in: boundary triangles that overlap
     another are dropped, round by round, until no boundary triangle overlaps (the mucosa under them maps to their
     neighbours, hidden rather than shown twice). Returns (kept triangles, number dropped), and the dropped
-    triangles (vertex indices) too with ``return_dropped``."""
-    f0, dropped = len(f), []
+    triangles (vertex indices) too with ``return_dropped``. ``candidates``: the triangles nearest a centroid that
+    are tested for covering it (see :func:`overlapping_triangles`)."""
+    from scipy.spatial import cKDTree
+
+    ue, eid = _edge_ids(f)
+    P = uv[f]                                                   # the map does not move while peeling: one tree
+    c = P.mean(1)
+    tree = cKDTree(c) if len(f) else None
+    alive, alive_mask, dropped = np.arange(len(f)), np.ones(len(f), bool), []
     for _ in range(rounds):
-        ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        ue, inv, cnt = _unique_rows(ee, return_inverse=True, return_counts=True)
-        on_b = np.flatnonzero((cnt == 1)[inv.ravel()].reshape(3, -1).any(0))
-        drop = on_b[overlapping_triangles(f, uv, query=on_b)]  # only boundary triangles are peeled: test those
+        if len(alive) < 2:
+            break
+        e = eid[:, alive]
+        # only boundary triangles are peeled: test those
+        own = alive[(np.bincount(e.ravel(), minlength=len(ue))[e] == 1).any(0)]
+        if not len(own):
+            break
+        drop = own[_inside_another(P, c, own, nearest_alive(tree, c, own, alive_mask, min(candidates, len(alive))))]
         if len(drop) == 0:
             break
-        keep = np.ones(len(f), bool)
-        keep[drop] = False
+        alive_mask[drop] = False
         dropped.append(f[drop])
-        f = f[keep]
+        alive = np.flatnonzero(alive_mask)
     if return_dropped:
-        return f, f0 - len(f), (np.concatenate(dropped) if dropped else np.zeros((0, 3), f.dtype))
-    return f, f0 - len(f)
+        return f[alive], len(f) - len(alive), (np.concatenate(dropped) if dropped else np.zeros((0, 3), f.dtype))
+    return f[alive], len(f) - len(alive)
 
 
 def stretch_stats(v: np.ndarray, f: np.ndarray, uv: np.ndarray) -> dict:
@@ -1145,7 +1219,9 @@ def _settled_map(cut, uv0, pairs, bonly, b2, s: float, report, check=None) -> tu
     wall, then with the wall round a fold left as-similar-as-possible. Returns (uv, kept and fold triangles, fold
     area mm^2, info). ``report(fraction)``: progress of the first map (or None); ``check()``, when given, is called
     between the ARAP steps of every map (it raises to abandon the map)."""
-    uv, f_keep, f_fold, info = _flat_map(cut, uv0, pairs, bonly, s, BOUNDARY_WEIGHT, report, check=check)
+    factors: dict = {}                          # this chain's factorised systems: the similar retry solves one again
+    uv, f_keep, f_fold, info = _flat_map(cut, uv0, pairs, bonly, s, BOUNDARY_WEIGHT, report, check=check,
+                                         factors=factors)
     check = check or ((lambda: report(0.9)) if report else None)  # the retries' steps: a Cancel raises there
     fold_mm2 = _area_mm2(cut.v, f_fold)
     info["boundary_weight"] = BOUNDARY_WEIGHT
@@ -1153,7 +1229,7 @@ def _settled_map(cut, uv0, pairs, bonly, b2, s: float, report, check=None) -> tu
     if fold_mm2 > FOLD_RETRY_FRACTION * _area_mm2(cut.v, cut.f):
         # a large flap folded over the map (the pyloric canal's flare): the boundary held straighter hides less
         w2 = BOUNDARY_WEIGHT * FOLD_RETRY_FACTOR
-        uv2, f_keep2, f_fold2, info2 = _flat_map(cut, uv0, pairs, b2, s, w2, None, check=check)
+        uv2, f_keep2, f_fold2, info2 = _flat_map(cut, uv0, pairs, b2, s, w2, None, check=check, factors=factors)
         fold2 = _area_mm2(cut.v, f_fold2)
         no_worse = info2["flat_defect_mm2"] <= max(HOLE_MM2, info["flat_defect_mm2"])
         retry = [fold_mm2, fold2]
@@ -1163,11 +1239,13 @@ def _settled_map(cut, uv0, pairs, bonly, b2, s: float, report, check=None) -> tu
             cur_w, cur_b = w2, b2
         info["fold_retry_mm2"] = retry
     if fold_mm2 > SIMILAR_FROM_MM2:
-        return _similar_retry(cut, uv0, pairs, cur_b, s, cur_w, (uv, f_keep, f_fold, fold_mm2, info), check=check)
+        return _similar_retry(cut, uv0, pairs, cur_b, s, cur_w, (uv, f_keep, f_fold, fold_mm2, info), check=check,
+                              factors=factors)
     return uv, f_keep, f_fold, fold_mm2, info
 
 
-def _similar_retry(cut, uv0, pairs, bonly, s: float, weight: float, current: tuple, check=None) -> tuple:
+def _similar_retry(cut, uv0, pairs, bonly, s: float, weight: float, current: tuple, check=None,
+                   factors: dict | None = None) -> tuple:
     """The flat map solved again with the wall near its peeled folds as-similar-as-possible (see SIMILAR_FROM_MM2);
     ``current`` = (uv mm, kept and fold triangles, fold area mm^2, info) of the map so far, returned as it is or
     replaced by the retry's when that hides under SIMILAR_GAIN as much with no larger hole. ``check()`` is called
@@ -1177,7 +1255,8 @@ def _similar_retry(cut, uv0, pairs, bonly, s: float, weight: float, current: tup
     uv, f_keep, f_fold, fold_mm2, info = current
     d = cKDTree(cut.v[np.unique(f_fold)]).query(cut.v[cut.f].mean(1), distance_upper_bound=SIMILAR_REACH_MM)[0]
     region = d <= SIMILAR_REACH_MM
-    uv2, f_keep2, f_fold2, info2 = _flat_map(cut, uv0, pairs, bonly, s, weight, None, check=check, similar=region)
+    uv2, f_keep2, f_fold2, info2 = _flat_map(cut, uv0, pairs, bonly, s, weight, None, check=check, similar=region,
+                                             factors=factors)
     fold2 = _area_mm2(cut.v, f_fold2)
     trace = {"similar_retry_mm2": [fold_mm2, fold2], "similar_triangles": int(region.sum())}
     if fold2 < SIMILAR_GAIN * fold_mm2 and info2["flat_defect_mm2"] <= max(HOLE_MM2, info["flat_defect_mm2"]):
@@ -1191,24 +1270,25 @@ def _area_mm2(v: np.ndarray, f: np.ndarray) -> float:
     return float(triangle_frames(v, f)[1].sum()) if len(f) else 0.0
 
 
-def _flat_map(cut, uv0, pairs, bonly, s: float, weight: float, report, check=None, similar=None):
+def _flat_map(cut, uv0, pairs, bonly, s: float, weight: float, report, check=None, similar=None,
+              factors: dict | None = None):
     """The flat map (uv mm) of the cut surface with boundary weight ``weight``, untangled and peeled (see
     settle_flat_map): returns (uv, kept triangles, peeled fold triangles, info). ``report(fraction)``: progress;
     ``check()``, when given, is called between the steps of every ARAP solve (it raises to abandon the map)."""
     tick = None if check is None else (lambda fraction: check())  # noqa: E731
     uv, info = arap(cut.v, cut.f, uv0, progress=report or tick, pairs=pairs, boundary_weight=weight,
-                    boundary_only=bonly, similar=similar, scale_range=SIMILAR_SCALE)
+                    boundary_only=bonly, similar=similar, scale_range=SIMILAR_SCALE, factors=factors)
     fb = info.pop("fallback_uv")
     info["flat_overlap_fraction"] = _overlap_fraction(uv, cut.f, s)
     if fb is not None and info["flat_overlap_fraction"] <= OVERLAP_TOLERANCE:
         fb = None                      # a small fold: peeled off the converged map
     plain = lambda: arap(cut.v, cut.f, uv0, progress=tick, boundary_weight=weight,  # noqa: E731 (no terms)
-                         boundary_only=bonly, similar=similar, scale_range=SIMILAR_SCALE)[0]
+                         boundary_only=bonly, similar=similar, scale_range=SIMILAR_SCALE, factors=factors)[0]
     # the whole boundary straightened, the cardia's opening too: it pries open a notch whose sides the map pressed
     # together, which would show the opening as a slot inside the mucosa (tried only then)
     whole = None if bonly.all() else (lambda: arap(cut.v, cut.f, uv0, progress=tick, pairs=pairs,  # noqa: E731
                                                     boundary_weight=weight, similar=similar,
-                                                    scale_range=SIMILAR_SCALE)[0])
+                                                    scale_range=SIMILAR_SCALE, factors=factors)[0])
     uv, f_keep, f_fold = settle_flat_map(cut, (uv, whole, fb, plain), s, info)
     return uv, f_keep, f_fold, info
 
