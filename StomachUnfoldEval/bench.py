@@ -915,6 +915,7 @@ def family_summary(rows: list[dict], group: str) -> dict:
                   "visible_median": float(np.median(vis)) if vis else None,
                   "visible_min": float(np.min(vis)) if vis else None,
                   "markers_seen": sum(x["seen"] for x in mk), "markers_total": sum(x["total"] for x in mk),
+                  "markers_missed": _missed(mk),
                   "under_fluid_seen": sum(x["by_region"].get("under_fluid", [0, 0])[0] for x in mk),
                   "under_fluid_total": sum(x["by_region"].get("under_fluid", [0, 0])[1] for x in mk),
                   "dome_seen": sum(x["by_region"].get("dome", [0, 0])[0] for x in mk),
@@ -933,6 +934,16 @@ def family_summary(rows: list[dict], group: str) -> dict:
     if zero:
         out.update(zero_click_summary(zero, rs))
     return out
+
+
+def _missed(mk: list[dict]) -> dict | None:
+    """Markers not seen summed by reason (markers.MISS_REASONS) over marker sections mk; None where a row lacks them
+    (rows run before the reasons were recorded)."""
+    from .markers import MISS_REASONS
+
+    if not mk or any("missed" not in x for x in mk):
+        return None
+    return {r: int(sum(x["missed"].get(r, 0) for x in mk)) for r in MISS_REASONS}
 
 
 def _unstretched(q: list[dict], limit: float = 1.5) -> dict:
@@ -1000,6 +1011,12 @@ def family_markdown(rows: list[dict]) -> list[str]:
                      f"{v['no_spring_over_limit']}/{v['no_triangle_over_limit']} | "
                      f"{f(v['inverted_max'] and 100 * v['inverted_max'], '{:.2f}')} | {f(v['seconds_median'], '{:.1f}')} |")
         L.append("")
+        missed = [f"{m} {' / '.join(str(v['markers_missed'][r]) for r in ('merged', 'off', 'not shown'))}"
+                  for m, v in summ.items() if v.get("markers_missed")]
+        if missed:
+            L.append("Markers not seen, by what the view shows within 4 mm of the place the map gives them (merged: part "
+                     "of a region over twice a bead's size, a bead joined to another or to dense tissue / off: a "
+                     "bead's own region, centred farther / not shown): " + "; ".join(missed) + ".\n")
         for m, v in summ.items():
             if "points_within_10mm" in v:
                 L.append(f"*{m}*: the points found (no clicks) lie within 10 mm of the true cardia and pylorus on "

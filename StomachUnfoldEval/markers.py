@@ -26,6 +26,13 @@ def visible_markers(unfolded: Volume, marker_hu: float = 200.0, threshold_hu: fl
     Returns a list of dicts with the region's centre in the unfolded volume's LPS frame (mm, at the hit
     depth), its (i, j) index centre and area in mm^2.
     """
+    return _marker_regions(unfolded, marker_hu, threshold_hu, min_area_mm2, merge_mm)[1]
+
+
+def _marker_regions(unfolded: Volume, marker_hu: float = 200.0, threshold_hu: float = -400.0,
+                    min_area_mm2: float = 2.0, merge_mm: float = 2.0):
+    """(label image (j, i): each kept region's dense pixels numbered from 1 in the order of the list, 0 elsewhere;
+    the list of :func:`visible_markers`)."""
     k, hu = first_hit(unfolded, threshold_hu)
     dense = np.nan_to_num(hu, nan=-2000.0) > marker_hu
     r = max(1, int(round(0.5 * merge_mm / float(min(unfolded.spacing[:2])))))
@@ -33,12 +40,14 @@ def visible_markers(unfolded: Volume, marker_hu: float = 200.0, threshold_hu: fl
     lab, n = ndimage.label(joined, structure=np.ones((3, 3), bool))
     lab = np.where(dense, lab, 0)
     out = []
+    kept = np.zeros(lab.shape, np.int32)
     px = float(unfolded.spacing[0] * unfolded.spacing[1])
     for idx, sl in enumerate(ndimage.find_objects(lab), start=1):
         m = lab[sl] == idx
         area = m.sum() * px
         if area < min_area_mm2:
             continue
+        kept[sl][m] = len(out) + 1
         jj, ii = np.nonzero(m)
         jj = jj + sl[0].start
         ii = ii + sl[1].start
@@ -46,7 +55,7 @@ def visible_markers(unfolded: Volume, marker_hu: float = 200.0, threshold_hu: fl
         centre = np.array([ii.mean(), jj.mean(), kk.mean()])
         out.append({"index_ijk": centre.tolist(), "lps": unfolded.index_to_lps(centre[None])[0].tolist(),
                     "area_mm2": float(area)})
-    return out
+    return kept, out
 
 
 def marker_report(unfolded: Volume, markers_unfolded_lps: dict, marker_hu: float = 200.0,
@@ -54,15 +63,20 @@ def marker_report(unfolded: Volume, markers_unfolded_lps: dict, marker_hu: float
     """Which true markers (id -> LPS in the unfolded frame, NaN if unmapped) are seen, and the in-plane error (mm).
 
     A marker is seen when a visible marker region lies within ``tolerance_mm`` of its mapped position in the
-    (i, j) plane of the view.
+    (i, j) plane of the view. A marker not seen gets ``missed``, by what the view shows within ``tolerance_mm`` of
+    its mapped position: "merged" (a pixel of a region that also lies within ``tolerance_mm`` of another marker's
+    place, or is over MERGED_AREA_FACTOR times the median region's area: the bead joined to another bead or to dense
+    tissue, the region's centre between them), "off" (a pixel of a lone bead-sized region whose centre lies
+    farther), "not shown" (no pixel of any region) or "unmapped" (no place on the view).
+    ``missed_counts`` sums them.
     """
-    seen = visible_markers(unfolded, marker_hu)
+    lab, seen = _marker_regions(unfolded, marker_hu)
     centres = np.array([s["index_ijk"][:2] for s in seen]) * unfolded.spacing[:2] if seen else np.zeros((0, 2))
-    res = {}
+    res, near = {}, {}
     for mid, p in markers_unfolded_lps.items():
         p = np.asarray(p, float)
         if not np.all(np.isfinite(p)):
-            res[mid] = {"seen": False, "error_mm": None, "mapped": False}
+            res[mid] = {"seen": False, "error_mm": None, "mapped": False, "missed": "unmapped"}
             continue
         ij = unfolded.lps_to_index(p[None])[0][:2] * unfolded.spacing[:2]
         if len(centres):
@@ -72,8 +86,39 @@ def marker_report(unfolded: Volume, markers_unfolded_lps: dict, marker_hu: float
             best = np.inf
         res[mid] = {"seen": bool(best <= tolerance_mm), "error_mm": (best if np.isfinite(best) else None),
                     "mapped": True}
+        near[mid] = _regions_near(lab, ij, unfolded.spacing[:2], tolerance_mm)
+    big = MERGED_AREA_FACTOR * float(np.median([r["area_mm2"] for r in seen])) if seen else np.inf
+    for mid, r in res.items():
+        if r["seen"] or not r["mapped"]:
+            continue
+        shared = any(near[mid] & ids for other, ids in near.items() if other != mid)
+        r["missed"] = ("not shown" if not near[mid] else
+                       "merged" if shared or any(seen[i - 1]["area_mm2"] > big for i in near[mid]) else "off")
+    counts = {r: sum(x.get("missed") == r for x in res.values()) for r in MISS_REASONS}
     return {"markers": res, "n_seen": int(sum(r["seen"] for r in res.values())), "n_total": len(res),
-            "n_regions": len(seen)}
+            "n_regions": len(seen), "missed_counts": counts}
+
+
+#: why a marker was not seen (see :func:`marker_report`)
+MISS_REASONS = ("merged", "off", "not shown", "unmapped")
+#: a region over this many times the median region's area holds more than one bead (or a bead and dense tissue)
+MERGED_AREA_FACTOR = 2.0
+
+
+def _regions_near(lab: np.ndarray, ij_mm: np.ndarray, spacing_ij, tolerance_mm: float) -> set:
+    """Ids of the regions of the label image of :func:`_marker_regions` with a pixel within tolerance_mm of ij_mm
+    (mm in the view's (i, j) plane)."""
+    si, sj = float(spacing_ij[0]), float(spacing_ij[1])
+    ci, cj = ij_mm[0] / si, ij_mm[1] / sj
+    ri, rj = int(np.ceil(tolerance_mm / si)), int(np.ceil(tolerance_mm / sj))
+    j0, j1 = max(0, int(np.floor(cj)) - rj), min(lab.shape[0], int(np.ceil(cj)) + rj + 1)
+    i0, i1 = max(0, int(np.floor(ci)) - ri), min(lab.shape[1], int(np.ceil(ci)) + ri + 1)
+    if j0 >= j1 or i0 >= i1:
+        return set()
+    jj, ii = np.mgrid[j0:j1, i0:i1]
+    win = lab[j0:j1, i0:i1]
+    inside = (((ii - ci) * si) ** 2 + ((jj - cj) * sj) ** 2 <= tolerance_mm ** 2) & (win > 0)
+    return {int(x) for x in np.unique(win[inside])}
 
 
 def _densify(polyline: np.ndarray, step: float) -> np.ndarray:
@@ -95,7 +140,7 @@ def marker_metrics(result, marker_lps: dict) -> dict:
     mapped = result.map_landmarks(marker_lps)
     rep = marker_report(vol, mapped)
     ids = [k for k in marker_lps if np.all(np.isfinite(mapped[k]))]
-    out = {"seen": rep["n_seen"], "total": rep["n_total"],
+    out = {"seen": rep["n_seen"], "total": rep["n_total"], "missed": rep["missed_counts"],
            "position_error_mm_mean": float(np.mean([r["error_mm"] for r in rep["markers"].values()
                                                     if r["error_mm"] is not None] or [np.nan]))}
     if len(ids) >= 2 and result.lumen_crop is not None:
@@ -158,7 +203,7 @@ def family_marker_metrics(result, truth: dict, pair_min_mm: float = 10.0, pair_m
     err = v[lesion] - g[lesion]
     med = view.get("median_relative_error")
     b = bound.get("median_relative_error")
-    return {"seen": rep["n_seen"], "total": rep["n_total"], "by_region": by_region,
+    return {"seen": rep["n_seen"], "total": rep["n_total"], "missed": rep["missed_counts"], "by_region": by_region,
             "pairwise_distance_distortion": med, "flat_bound": b,
             "ratio_to_bound": (med / b) if (med is not None and b) else None,
             "pairs": view.get("n_pairs"),

@@ -239,3 +239,50 @@ def test_mesh_size_part_charts_each_size_against_the_default(tmp_path):
     md = "\n".join(bench.mesh_size_markdown(rows))
     assert f"| tuning | {small} | 2 | 2.0 | 1.50 | 1 |" in md and f"{default} (default)" in md
     assert bench.mesh_size_markdown(rows[-1:]) == []             # not run: no table
+
+
+def test_a_marker_not_seen_is_told_apart_as_merged_off_not_shown_or_unmapped():
+    from StomachUnfoldEval.markers import marker_report
+    from StomachUnfoldLib.geometry import Volume
+
+    a = np.full((6, 60, 60), -1000.0)
+    a[:3] = 40.0                                             # the wall: the first hit from the viewer is k = 2
+    jj, ii = np.mgrid[0:60, 0:60]
+    for ci, cj in ((10, 10), (50, 10)):                      # two lone beads
+        a[2][(ii - ci) ** 2 + (jj - cj) ** 2 <= 4] = 1000.0
+    a[2, 40:46, 5:25] = 1000.0                               # dense tissue a bead lies in (a 120 mm^2 region)
+    for ci in (25, 34):                                      # two beads 9 mm apart whose regions touch: one region
+        a[2][(ii - ci) ** 2 + (jj - 25) ** 2 <= 16] = 1000.0
+    vol = Volume(a, np.ones(3), np.zeros(3), np.eye(3))
+    mapped = {"seen": [10.0, 10.0, 2.0], "merged": [6.0, 43.0, 2.0], "off": [50.0, 14.5, 2.0],
+              "not shown": [50.0, 50.0, 2.0], "unmapped": [np.nan] * 3,
+              "pair 1": [25.0, 25.0, 2.0], "pair 2": [34.0, 25.0, 2.0]}
+    rep = marker_report(vol, mapped)
+    assert rep["n_seen"] == 1 and rep["markers"]["seen"]["seen"]
+    assert "missed" not in rep["markers"]["seen"]
+    for why in ("merged", "off", "not shown", "unmapped"):
+        assert rep["markers"][why]["missed"] == why, (why, rep["markers"][why])
+    assert rep["markers"]["pair 1"]["missed"] == rep["markers"]["pair 2"]["missed"] == "merged"
+    assert rep["missed_counts"] == {"merged": 3, "off": 1, "not shown": 1, "unmapped": 1}
+
+
+def test_the_summary_sums_why_markers_were_not_seen_and_says_it_under_the_table():
+    def row(vol, m, missed):
+        mk = {"seen": 3, "total": 4, "by_region": {}, "pairwise_distance_distortion": 0.05, "flat_bound": 0.04,
+              "ratio_to_bound": 1.25, "length_error_mm": {"mean": 0.1, "sd": 1.0, "pairs": 2}}
+        if missed is not None:
+            mk["missed"] = missed
+        q = {"grade": "excellent", "visible_fraction": 0.99, "broken_springs_fraction": 0.0, "inverted_fraction": 0.0,
+             "failure_parts": 0, "max_stretch": 1.2, "markers": mk}
+        return {"name": f"{vol}/{m}", "group": "stomachs-fresh", "method": m, "ok": True, "seconds": 1.0, "quality": q}
+    reasons = {"merged": 1, "off": 0, "not shown": 0, "unmapped": 0}
+    rows = [row("a", "isometric", reasons), row("b", "isometric", dict(reasons, off=2)),
+            row("a", "lscm", dict(reasons, merged=0, **{"not shown": 3}))]
+    s = bench.family_summary(rows, "stomachs-fresh")
+    assert s["isometric"]["markers_missed"] == {"merged": 2, "off": 2, "not shown": 0, "unmapped": 0}
+    text = "\n".join(bench.family_markdown(rows))
+    assert "Markers not seen, by what the view shows" in text and "isometric 2 / 2 / 0; lscm 0 / 0 / 3." in text
+    # rows judged before the reasons were recorded: no sums, no line
+    old = [row("a", "isometric", None)]
+    assert bench.family_summary(old, "stomachs-fresh")["isometric"]["markers_missed"] is None
+    assert "Markers not seen" not in "\n".join(bench.family_markdown(old))
