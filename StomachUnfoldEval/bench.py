@@ -305,9 +305,14 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
     return cases
 
 
+def _phantom_cache(cache_dir: str | None) -> str:
+    """The folder of drawn phantoms kept between runs: ``cache_dir``, else ~/.cache/stomach-unfold/phantoms."""
+    return cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "stomach-unfold", "phantoms")
+
+
 def mesh_size_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
     """The default method on the tuning and held-out random stomachs with each of MESH_SIZES as its mesh's size."""
-    cache = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "stomach-unfold", "phantoms")
+    cache = _phantom_cache(cache_dir)
     seeds = (TUNE_SEEDS[:2] + HELD_OUT_SEEDS[:2]) if quick else (TUNE_SEEDS + HELD_OUT_SEEDS)
     return [Case(f"stomach-{seed}/{FAMILY_METHODS[0]}-v{n}", {"random": int(seed), "size": "small", "_cache": cache},
                  {"isometric_vertices": n}, method=FAMILY_METHODS[0], group="mesh-size")
@@ -356,7 +361,7 @@ def mesh_size_markdown(rows: list[dict]) -> list[str]:
 
 def zero_click_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
     """The default method on every random stomach from the points found automatically (zero clicks)."""
-    cache = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "stomach-unfold", "phantoms")
+    cache = _phantom_cache(cache_dir)
     cases = []
     for group, seeds in (("stomachs-tune", TUNE_SEEDS), ("stomachs-held-out", HELD_OUT_SEEDS)):
         for seed in seeds[:3] if quick else seeds:
@@ -368,7 +373,7 @@ def zero_click_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
 
 def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None) -> list[dict]:
     """Random stomachs (tuned-on and held-out seeds) and hybrids in the real CTs, every FAMILY_METHODS on each."""
-    cache = cache_dir or os.path.join(os.path.expanduser("~"), ".cache", "stomach-unfold", "phantoms")
+    cache = _phantom_cache(cache_dir)
     groups = [("stomachs-tune", TUNE_SEEDS[:3] if quick else TUNE_SEEDS),
               ("stomachs-held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS),
               ("stomachs-fresh", () if quick else FRESH_SEEDS),
@@ -986,6 +991,8 @@ def zero_click_summary(zero: list[dict], two_click_rows: list[dict]) -> dict:
 
 def family_markdown(rows: list[dict]) -> list[str]:
     """The random-stomach sections of results.md: one summary table per group, then every volume."""
+    from .markers import MISS_REASONS
+
     L = []
     for group, title in FAMILY_GROUPS:
         summ = family_summary(rows, group)
@@ -1011,12 +1018,14 @@ def family_markdown(rows: list[dict]) -> list[str]:
                      f"{v['no_spring_over_limit']}/{v['no_triangle_over_limit']} | "
                      f"{f(v['inverted_max'] and 100 * v['inverted_max'], '{:.2f}')} | {f(v['seconds_median'], '{:.1f}')} |")
         L.append("")
-        missed = [f"{m} {' / '.join(str(v['markers_missed'][r]) for r in ('merged', 'off', 'not shown'))}"
+        shown = MISS_REASONS[:3]                   # "unmapped" is not a view's: every method maps every marker here
+        missed = [f"{m} {' / '.join(str(v['markers_missed'][r]) for r in shown)}"
                   for m, v in summ.items() if v.get("markers_missed")]
         if missed:
-            L.append("Markers not seen, by what the view shows within 4 mm of the place the map gives them (merged: part "
-                     "of a region over twice a bead's size, a bead joined to another or to dense tissue / off: a "
-                     "bead's own region, centred farther / not shown): " + "; ".join(missed) + ".\n")
+            L.append("Markers not seen, by what the view shows within 4 mm of the place the map gives them (merged: a "
+                     "region also within 4 mm of another marker's place or over twice the median region's size, a "
+                     "bead joined to another or to dense tissue / off: a lone bead's region, centred farther / not "
+                     "shown): " + "; ".join(missed) + ".\n")
         for m, v in summ.items():
             if "points_within_10mm" in v:
                 L.append(f"*{m}*: the points found (no clicks) lie within 10 mm of the true cardia and pylorus on "

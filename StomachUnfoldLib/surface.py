@@ -36,10 +36,10 @@ def sample_profiles(crop: Volume, surf: np.ndarray, normal: np.ndarray, depths: 
                      lumen: np.ndarray | None, batch: int = 4_000_000) -> np.ndarray:
     """CT HU (float32, (N, D)) at ``surf + depth * normal`` (LPS mm); lumen samples cleared to -1024 if given.
 
-    A sample is lumen where the mask ``lumen`` (on the crop's grid), blurred as for the inner wall
-    (SURFACE_SIGMA_VOX voxels) and interpolated trilinearly, is at least one half: the cleared region ends on the
-    same smooth surface the profiles start from, not on the mask's voxel staircase (which on thick slices drew
-    terraces, a "wood grain", across the view).
+    A sample is cleared by the mask ``lumen`` (on the crop's grid) blurred as for the inner wall (SURFACE_SIGMA_VOX
+    voxels) and interpolated trilinearly: not at all below one half, fully from 0.5 + CLEAR_RAMP, in proportion
+    between. The cleared region ends on the same smooth surface the profiles start from, not on the mask's voxel
+    staircase (which on thick slices drew terraces, a "wood grain", across the view).
     """
     n, d = len(surf), len(depths)
     out = np.empty((n, d), np.float32)
