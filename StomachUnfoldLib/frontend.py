@@ -297,7 +297,8 @@ def _lumen(ct, cardia, pylorus, params, mask, report):
     if mask.shape != ct.array.shape:
         raise InputError(f"the stomach mask has shape {mask.shape}, the CT {ct.array.shape}: resample the "
                          "mask onto the CT grid (io.read_label_volume does)")
-    lumen, info = lumen_from_mask(mask, ct, cardia, pylorus, max_snap_mm=params.max_snap_mm)
+    lumen, info = lumen_from_mask(mask, ct, cardia, pylorus, max_snap_mm=params.max_snap_mm,
+                                  gas_hu=params.air_threshold_hu)
     check_mask_region(lumen, info["volume_ml"])
     return lumen, info
 

@@ -141,12 +141,19 @@ class Volume:
         return Volume(arr, self.spacing.copy(), self.index_to_lps(lo.astype(float)), self.direction.copy())
 
     def sample(self, lps, order: int = 1, cval: float = -1024.0) -> np.ndarray:
-        """Interpolate the volume at LPS points (mm); trilinear by default, ``cval`` (HU) outside."""
+        """Interpolate the volume at LPS points (mm); trilinear by default, ``cval`` (HU) outside.
+
+        A voxel spans half a voxel either side of its centre: a point in the outer half of an edge voxel takes that
+        voxel's value (not ``cval``); beyond it the point is outside.
+        """
         from scipy import ndimage
 
         lps = np.asarray(lps, dtype=float)
         ijk = self.lps_to_index(lps.reshape(-1, 3))
         coords = ijk[:, ::-1].T  # (k, j, i) rows for map_coordinates
+        top = np.asarray(self.array.shape, float)[:, None] - 1.0
+        edge = (coords >= -0.5) & (coords <= top + 0.5)
+        coords = np.where(edge, np.clip(coords, 0.0, top), coords)
         out = ndimage.map_coordinates(self.array, coords, order=order, mode="constant", cval=cval,
                                       output=np.float32, prefilter=False)
         return out.reshape(lps.shape[:-1])

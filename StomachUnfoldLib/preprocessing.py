@@ -620,11 +620,12 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
 
 
 def lumen_from_mask(mask: np.ndarray, ct: Volume, cardia_lps, pylorus_lps,
-                    max_snap_mm: float = 20.0) -> tuple[np.ndarray, dict]:
+                    max_snap_mm: float = 20.0, gas_hu: float | None = None) -> tuple[np.ndarray, dict]:
     """Lumen from a stomach label (bool on ct's grid): its 6-connected component(s) reached by the two LPS points (mm).
 
     Used in place of :func:`air_region` when the stomach holds no gas. Returns ``(mask, info)`` with the
-    same info keys as :func:`air_region` (volume in mL, seeds in LPS mm).
+    same info keys as :func:`air_region` (volume in mL, seeds in LPS mm). With ``gas_hu`` (HU), the label's voxels
+    of a gas body lying mostly outside it are left out first (:func:`drop_neighbour_gas`; ``info["neighbour_gas_ml"]``).
 
     Raises
     ------
@@ -642,6 +643,9 @@ def lumen_from_mask(mask: np.ndarray, ct: Volume, cardia_lps, pylorus_lps,
     if not mask.any():
         raise AnatomyError("the stomach mask is empty on the CT grid; check the label value and that the label "
                            "volume overlaps the CT")
+    dropped = 0
+    if gas_hu is not None:
+        mask, dropped = drop_neighbour_gas(mask, ct, gas_hu)
     seeds = []
     for name, p in (("cardia", cardia_lps), ("pylorus", pylorus_lps)):
         seeds.append(snap_to_region(mask, ct, p, max_snap_mm, name))
@@ -662,8 +666,43 @@ def lumen_from_mask(mask: np.ndarray, ct: Volume, cardia_lps, pylorus_lps,
     warnings = []
     if n_comp > 1:
         warnings.append("the cardia and pylorus lie in separate parts of the stomach mask; their union is used")
-    return region, {"volume_ml": float(np.count_nonzero(reg)) * float(np.prod(ct.spacing)) / 1000.0,
+    ml = float(np.prod(ct.spacing)) / 1000.0
+    return region, {"volume_ml": float(np.count_nonzero(reg)) * ml, "neighbour_gas_ml": dropped * ml,
                     "n_components": n_comp, "seeds_lps": [s.tolist() for s in seeds], "warnings": warnings}
+
+
+#: How far (mm) around a stomach label :func:`drop_neighbour_gas` follows the gas bodies it touches.
+NEIGHBOUR_GAS_MARGIN_MM = 15.0
+
+
+def drop_neighbour_gas(mask: np.ndarray, ct: Volume, gas_hu: float,
+                       margin_mm: float = NEIGHBOUR_GAS_MARGIN_MM) -> tuple[np.ndarray, int]:
+    """A stomach label (bool on ct's grid) without its voxels of gas bodies (below ``gas_hu`` HU, 6-connected) that
+    lie mostly outside it: where an automatic label's edge runs into a bowel loop or lung base beside the stomach.
+
+    The gas is followed within ``margin_mm`` (mm) of the label's bounding box. The stomach's own gas, even where the
+    label clips it, lies mostly inside and is kept. Returns (the label, a new array if any voxel was dropped; the
+    number of voxels dropped). An empty result keeps the label as given.
+    """
+    lo, hi = bounding_box(mask, tuple(int(np.ceil(margin_mm / sp)) for sp in ct.spacing))
+    box = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
+    sub = np.asarray(mask[box], bool)
+    gas = np.asarray(ct.array[box]) < gas_hu
+    touched = gas & sub
+    if not touched.any():
+        return mask, 0
+    lab, n = ndimage.label(gas)
+    inside = np.bincount(lab[touched], minlength=n + 1)
+    total = np.bincount(lab.ravel(), minlength=n + 1)
+    drop = inside < 0.5 * total
+    drop[0] = False
+    cut = sub & drop[lab]
+    count = int(np.count_nonzero(cut))
+    if count == 0 or count == int(np.count_nonzero(sub)):
+        return mask, 0
+    out = np.array(mask, bool, copy=True)
+    out[box] = sub & ~cut
+    return out, count
 
 
 # ---------------------------------------------------------------------------------------------- wall region

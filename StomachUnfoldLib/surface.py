@@ -20,6 +20,7 @@ CLEARANCE_MM = 2.0      # profile length beyond the wall thickness (mm)
 CRACK_PX = 1.0          # pinholes and cracks inside the flat map's outline up to two pixels wide are closed (pixels)
 SURFACE_SIGMA_VOX = 1.0  # blur of the inner-wall field (voxels)
 CLEAR_RAMP = 0.3        # a lumen mask clears the profiles from 0.5 to 0.8 of its blurred field, in proportion
+TISSUE_HU = -400.0      # a view's sample above this is tissue: where the view is seen (view.first_hit's default)
 
 
 def unit(v, eps=1e-12):
@@ -40,6 +41,10 @@ def sample_profiles(crop: Volume, surf: np.ndarray, normal: np.ndarray, depths: 
     voxels) and interpolated trilinearly: not at all below one half, fully from 0.5 + CLEAR_RAMP, in proportion
     between. The cleared region ends on the same smooth surface the profiles start from, not on the mask's voxel
     staircase (which on thick slices drew terraces, a "wood grain", across the view).
+
+    Where a label's edge borders gas (a neighbouring bowel loop or lung base, or gas the label left out), clearing
+    would leave a profile with no tissue at all: a hole in the view. There the label's own outermost tissue on the
+    profile (above TISSUE_HU: the stomach's wall between its content and that gas) is kept, so the view shows it.
     """
     n, d = len(surf), len(depths)
     out = np.empty((n, d), np.float32)
@@ -57,9 +62,24 @@ def sample_profiles(crop: Volume, surf: np.ndarray, normal: np.ndarray, depths: 
             # cleared in proportion across the surface (a ramp over CLEAR_RAMP of the field), so that where the
             # view finds the wall moves smoothly with it, not in steps of the depth samples
             alpha = np.clip((occ - 0.5) / CLEAR_RAMP, 0.0, 1.0)
-            v += alpha * (-1024.0 - v)
+            v = v.reshape(b - a, d)
+            cleared = v + alpha.reshape(b - a, d) * (-1024.0 - v)
+            _keep_outer_tissue(cleared, v)
+            v = cleared
         out[a:b] = v.reshape(b - a, d)
     return out
+
+
+def _keep_outer_tissue(cleared: np.ndarray, raw: np.ndarray) -> None:
+    """In profiles (N, D; index 0 deepest) that clearing left without tissue, restore the raw HU from the deepest
+    end up to the outermost raw sample above TISSUE_HU (in place)."""
+    lost = (cleared.max(axis=1) <= TISSUE_HU) & (raw.max(axis=1) > TISSUE_HU)
+    if not lost.any():
+        return
+    rows = np.nonzero(lost)[0]
+    outer = np.argmax(raw[rows] > TISSUE_HU, axis=1)  # the first tissue sample from the deepest end
+    upto = np.arange(raw.shape[1])[None, :] <= outer[:, None]
+    cleared[rows] = np.where(upto, raw[rows], cleared[rows])
 
 
 def depth_axis(s: float, wall_thickness_mm: float):

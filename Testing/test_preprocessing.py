@@ -282,3 +282,26 @@ def test_distance_mm_matches_scipy_with_anisotropic_spacing():
         got = distance_mm(x, sp)
         assert got.dtype == np.float32 and np.allclose(got, ref, atol=1e-4)
     assert np.all(distance_mm(np.zeros((4, 4, 4), bool), sp) == 0)
+
+
+def test_a_labels_overlap_with_a_neighbouring_gas_body_is_left_out_and_its_own_gas_kept():
+    # a label that runs two voxels into a gas loop beside the stomach (an automatic label's edge) and clips its own
+    # gas pocket: the loop's voxels go, the pocket's stay, the rest of the label is untouched
+    from StomachUnfoldLib.preprocessing import drop_neighbour_gas
+
+    hu = np.full((30, 30, 60), 40.0, np.float32)
+    label = np.zeros(hu.shape, bool)
+    label[5:25, 5:25, 5:35] = True
+    hu[5:25, 5:25, 33:50] = -900.0          # a neighbouring loop: 17 columns, two of them inside the label
+    hu[8:14, 8:14, 8:16] = -900.0           # the stomach's own pocket, one column past the label's edge at i = 4..5
+    hu[8:14, 8:14, 4:5] = -900.0
+    ct = Volume(hu, spacing=np.array([1.0, 1.0, 1.0]))
+    out, n = drop_neighbour_gas(label, ct, -500.0)
+    assert n == 20 * 20 * 2 and out is not label
+    assert not out[:, :, 33:35].any() and out[5:25, 5:25, 5:33].all()
+    assert out[8:14, 8:14, 8:16].all()      # the pocket, mostly inside, is kept
+    assert label[5:25, 5:25, 33:35].all()   # the given label is not modified
+    same, none = drop_neighbour_gas(label[:, :, :30].copy(), Volume(hu[:, :, :30].copy(), spacing=ct.spacing), -500.0)
+    assert none == 0
+    lum, info = lumen_from_mask(label, ct, ct.voxel_lps(label)[0], ct.voxel_lps(label)[-1], gas_hu=-500.0)
+    assert not lum[:, :, 33:35].any() and info["neighbour_gas_ml"] == pytest.approx(0.8)

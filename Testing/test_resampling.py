@@ -111,3 +111,20 @@ def test_correspondence_round_trip_under_bending():
     assert np.allclose(back, pts, atol=1e-6)
     far = corr.to_unfolded(np.array([[500.0, 500.0, 500.0]]))
     assert np.all(np.isnan(far))
+
+
+@pytest.mark.parametrize("direction", [np.eye(3), np.diag([1.0, -1.0, 1.0])])
+def test_sample_gives_an_edge_voxels_value_across_its_whole_extent_and_cval_beyond(direction):
+    # a voxel spans half a voxel either side of its centre: a CT cut through the stomach at its last slice shows that
+    # slice up to the volume's edge, not -1024 from its centre on (a hole along a slab's edge in the view)
+    vol = _ramp_ct(direction)
+    n = vol.array.shape[0]
+    inner = np.array([[5.0, 7.0, 0.0], [5.0, 7.0, n - 1.0], [0.0, 3.0, 9.0], [n - 1.0, 3.0, 9.0]])  # i, j, k
+    half = inner + np.array([[0, 0, -0.45], [0, 0, 0.45], [-0.45, 0, 0], [0.45, 0, 0]])
+    beyond = inner + np.array([[0, 0, -0.55], [0, 0, 0.55], [-0.55, 0, 0], [0.55, 0, 0]])
+    at_centre = vol.sample(vol.index_to_lps(inner))
+    assert np.allclose(vol.sample(vol.index_to_lps(half)), at_centre, atol=1e-3)
+    assert np.all(vol.sample(vol.index_to_lps(beyond), cval=-1024.0) == -1024.0)
+    mid = np.array([[5.3, 7.6, 9.2]])
+    P = vol.index_to_lps(mid)[0]
+    assert vol.sample(vol.index_to_lps(mid))[0] == pytest.approx(3.0 * P[0] - 2.0 * P[1] + P[2], abs=1e-3)

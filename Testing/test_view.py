@@ -216,3 +216,30 @@ def test_a_lumen_mask_on_thick_slices_clears_the_profiles_where_its_surface_is_n
     cross = depths[first - 1] + (-400.0 - lo) / (hi - lo) * (depths[first] - depths[first - 1])
     assert np.ptp(cross) < 0.2                                         # one smooth surface, not the terraces
     assert np.abs(cross).max() < 1.0                                   # within a millimetre of where they start
+
+
+def test_a_label_edge_against_gas_shows_the_labels_own_outer_tissue_not_a_hole():
+    # a fluid-filled stomach label whose wall (1.5 mm of tissue inside the label's edge) borders a gas loop: clearing
+    # the label empties those profiles (a hole in the view, as on the real CTs' labels against colon gas); the
+    # label's outermost tissue is kept there instead, and profiles that meet tissue outside the label stay as they were
+    from StomachUnfoldLib.surface import sample_profiles
+
+    nk, nj, ni = 40, 6, 6
+    sp = np.array([1.0, 1.0, 0.5])
+    k_mm = np.arange(nk)[:, None, None] * sp[2] + np.zeros((1, nj, ni))
+    lumen = k_mm < 10.0                                   # the label: k below 10 mm (wall included)
+    hu = np.where(k_mm < 8.5, 20.0, np.where(k_mm < 10.0, 60.0, -950.0)).astype(np.float32)  # gas beyond the label
+    hu[:, :, 3:] = np.where(k_mm[:, :, 3:] < 10.0, 20.0, 40.0)  # other half: tissue beyond the label
+    crop = Volume(hu, spacing=sp)
+    surf = np.array([[2.0, 2.0, 10.0], [4.0, 2.0, 10.0]])   # on the label's edge: gas side, tissue side
+    normal = np.tile([0.0, 0.0, 1.0], (2, 1))
+    depths = np.arange(4.0, -4.01, -0.5)                   # index 0 deepest (the view's k order)
+    prof = sample_profiles(crop, surf, normal, depths, lumen)
+    assert prof[0].max() > -400.0                         # not emptied: no hole
+    first = np.nonzero(prof[0] > -400.0)[0].max()          # the first tissue from the lumen side
+    assert -2.0 <= depths[first] < 0.0 and prof[0][first] > 0  # the label's own wall, just inside its edge
+    assert np.all(prof[0][depths < depths[first]] <= -900)  # the gas beyond it is still gas
+    assert np.all(prof[0][depths < -2.0] == -1024.0)        # the lumen further in is still cleared
+    plain = sample_profiles(crop, surf[1:], normal[1:], depths, lumen)
+    assert np.array_equal(prof[1], plain[0])              # a profile with tissue outside the label: unchanged
+    assert np.all(prof[1][depths > 1.0] == 40.0) and np.all(prof[1][depths < -1.0] == -1024.0)
