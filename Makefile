@@ -9,7 +9,7 @@ DEMO_OUT ?= demo-out
 $(BIN)/stomach-unfold: pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test,slicer,bench,batch]'
+	$(BIN)/pip install --quiet -e '.[test,slicer,bench,batch,fast]'
 	touch $@
 
 install: $(BIN)/stomach-unfold

@@ -13,7 +13,7 @@ Formats read in boxes:
   reader (``ImageFileReader`` with an extract region).
 * NRRD (``.nrrd``, ``.nhdr`` with the data in the same file, raw or gzip): this module's own reader (ITK's
   NRRD reader decodes the whole file for any region). Raw data is memory-mapped box by box; gzip data is
-  decompressed from the start up to the box's last slice.
+  decompressed from the start up to the box's last slice (by zlib-ng where it is installed, else by zlib).
 
 Anything else (a DICOM folder, compressed MetaImage, detached NRRD data, other formats) returns None and is
 read whole by :func:`StomachUnfoldLib.io.read_volume`.
@@ -28,6 +28,11 @@ import zlib
 import numpy as np
 
 from .errors import InputError
+
+try:  # zlib-ng (pip package zlib-ng): the same inflate, its output byte for byte, about 1.6x faster; else the stdlib's
+    from zlib_ng import zlib_ng as _inflate
+except ImportError:  # e.g. inside 3D Slicer, which does not bundle it
+    _inflate = zlib
 
 __all__ = ["FileArray", "PackedMask", "open_volume", "SLAB_SLICES"]
 
@@ -297,7 +302,7 @@ class _NrrdBackend:
             if marks:
                 u, c, d = marks[-1][0], marks[-1][1], marks[-1][2].copy()
             else:
-                u, c, d = 0, self.offset, zlib.decompressobj(16 + zlib.MAX_WBITS)
+                u, c, d = 0, self.offset, _inflate.decompressobj(16 + zlib.MAX_WBITS)
             f.seek(c)
             data = b""
             while True:
@@ -311,11 +316,11 @@ class _NrrdBackend:
                             self._marks.append((u, f.tell() - len(data), d.copy()))  # resume here later
                 try:
                     out = d.decompress(data, GZIP_CHUNK_BYTES)
-                except zlib.error as e:
+                except (zlib.error, _inflate.error) as e:
                     raise InputError(f"cannot read {self.path}: its gzip data is damaged ({e}); export it again") from None
                 data = d.unconsumed_tail
                 if d.eof:
-                    data, d = d.unused_data, zlib.decompressobj(16 + zlib.MAX_WBITS)
+                    data, d = d.unused_data, _inflate.decompressobj(16 + zlib.MAX_WBITS)
                 if out:
                     yield u, out
                     u += len(out)
