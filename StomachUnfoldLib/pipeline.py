@@ -272,9 +272,13 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
         g = gas_contact_fraction(prep.crop, prep.lumen, params.air_threshold_hu)
         result.report.quality["lumen_gas_contact_fraction"] = g
         return g
+    nk = int(ct.size[2])
+    cut_by_scan = tuple(which for which, at_edge, sl in (("first", prep.crop_lo_ijk[2] == 0, 0),
+                                                           ("last", prep.crop_hi_ijk[2] == nk, -1))
+                        if at_edge and bool(np.any(prep.lumen[sl])))
     result.report.warnings += plausibility_warnings(
         ct, prep.cardia_lps, prep.pylorus_lps, (prep.air_info or {}).get("volume_ml"), result.report.quality,
-        out.unfolded, orient, gas)
+        out.unfolded, orient, gas, cut_by_scan)
     result.report.warnings += hidden_fold_warnings(out.report.get("hidden_folds") or [], out.unfolded, orient)
     seconds["total"] = time.perf_counter() - t_all
     return result

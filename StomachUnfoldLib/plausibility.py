@@ -92,9 +92,10 @@ def hidden_fold_warnings(folds: list[dict], unfolded: Volume, orient: dict | Non
 
 def plausibility_warnings(ct: Volume, cardia_lps, pylorus_lps, lumen_ml: float | None, quality: dict | None,
                           unfolded: Volume | None = None, orient: dict | None = None,
-                          gas_contact=None) -> list[str]:
+                          gas_contact=None, cut_by_scan: tuple = ()) -> list[str]:
     """Warnings (plain sentences) on a finished run: lumen under MIN_STOMACH_ML (mL), a point (LPS mm) on the CT's
-    first or last slice, a grade of fair or worse with its failure parts and where they lie on the view, and holes
+    first or last slice, a lumen cut off by the scan range (``cut_by_scan``: "first" and/or "last", the slices of the
+    CT the lumen reaches), a grade of fair or worse with its failure parts and where they lie on the view, and holes
     in the view where the lumen touches gas outside it (``gas_contact``: :func:`gas_contact_fraction`'s share, or a
     callable giving it, called only when the view has a hole part)."""
     out = []
@@ -121,6 +122,11 @@ def plausibility_warnings(ct: Volume, cardia_lps, pylorus_lps, lumen_ml: float |
             which = "first" if k < 1.0 else "last"
             out.append(f"the {name} point lies on the {which} slice of the scan: the stomach is probably cut off "
                        "by the scan range, so its end is missing from the view")
+            cut_by_scan = tuple(c for c in cut_by_scan if c != which)  # said already
+    for which in cut_by_scan:
+        out.append(f"the stomach reaches the {which} slice of the scan: it is cut off by the scan range there, and "
+                   "the view ends where the scan does (a flat cap, or a hole where its gas meets that slice); read "
+                   "the rest on a scan that covers the whole stomach")
     if quality and quality.get("grade") in ("fair", "bad"):
         txt = "; ".join(f"{p['kind']} of {p['area_mm2']:.0f} mm^2 {p['where']}" for p in parts)
         bent = quality.get("bent_area_fraction") or 0.0

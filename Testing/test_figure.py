@@ -237,6 +237,14 @@ def test_plausibility_warnings():
     w = plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, good, vol, orient, 0.03)
     assert len(w) == 1 and w[0].startswith("the view has holes (100 mm^2 near the pylorus, anterior half): 3.0 %")
     assert plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, good, vol, orient, 0.001) == []
+    # a stomach the scan range cuts off (a label reaching the last slice; both ends of a slab): said once per side,
+    # not again where a point on that slice has said it
+    w = plausibility_warnings(ct, [10.0, 10.0, 5.0], [12.0, 12.0, 10.0], 600.0, {"grade": "excellent"},
+                              cut_by_scan=("last",))
+    assert len(w) == 1 and w[0].startswith("the stomach reaches the last slice of the scan: it is cut off")
+    w = plausibility_warnings(ct, [10.0, 10.0, 0.0], [12.0, 12.0, 10.0], 600.0, {"grade": "excellent"},
+                              cut_by_scan=("first", "last"))
+    assert len(w) == 2 and "cardia point lies on the first slice" in w[0] and "reaches the last slice" in w[1]
 
 
 def test_gas_contact_fraction_finds_gas_against_the_lumen():

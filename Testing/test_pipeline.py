@@ -170,3 +170,16 @@ def test_phantom_command(tmp_path):
     assert np.linalg.det(v.direction) < 0
     truth = json.load(open(tmp_path / "p.json"))
     assert len(truth["markers"]) == 12 and (tmp_path / "p.mrk.json").exists()
+
+
+def test_a_stomach_cut_off_by_the_scan_range_is_said_in_the_warnings():
+    # the J phantom's top slices removed: its fundus now reaches the scan's last slice while both points stay inside
+    from StomachUnfoldLib.geometry import Volume
+
+    ct, truth = make_phantom("j", "tiny", noise_hu=0.0)
+    cut = Volume(np.ascontiguousarray(ct.array[:120]), ct.spacing, ct.origin, ct.direction)
+    w = unfold(cut, truth["cardia_lps"], truth["pylorus_lps"], TINY).report["warnings"]
+    assert sum("reaches the last slice of the scan" in x for x in w) == 1
+    assert not any("first slice" in x or "point lies on" in x for x in w)
+    whole = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], TINY).report["warnings"]
+    assert not any("slice of the scan" in x for x in whole)
