@@ -1,7 +1,7 @@
-"""The core library runs on what 3D Slicer bundles (numpy, scipy, SimpleITK, vtk): no scikit-image, no tqdm.
+"""The core library runs on what 3D Slicer bundles (numpy, scipy, SimpleITK, vtk): no scikit-image, no tqdm, no zlib-ng.
 
-(a) every module of StomachUnfoldLib imports, and the air region and centreline run, in a subprocess where
-skimage and tqdm cannot be imported; (b) the replacements give skimage's results (flood fill, minimal-cost
+(a) every module of StomachUnfoldLib imports, and the air region and centreline run and a gzip NRRD is read box by
+box, in a subprocess where skimage, tqdm and zlib_ng cannot be imported; (b) the replacements give skimage's results (flood fill, minimal-cost
 path); (c) the VTK isosurface matches skimage's marching cubes (area, volume, orientation).
 """
 import os
@@ -17,7 +17,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BLOCKED_RUN = textwrap.dedent(r'''
     import importlib, importlib.abc, pkgutil, sys
 
-    BLOCKED = ("skimage", "tqdm")
+    BLOCKED = ("skimage", "tqdm", "zlib_ng")
 
     class Block(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path=None, target=None):
@@ -64,6 +64,17 @@ BLOCKED_RUN = textwrap.dedent(r'''
     assert np.abs(r - 35.0).max() < 3.0 and np.abs(p[:, 1] - 45.0).max() < 2.0, "the centreline is off the axis"
     assert abs(cl.length_mm - np.pi * 35.0) < 0.1 * np.pi * 35.0, cl.length_mm
     assert np.abs(cl.radius_mm[3:-3] - 10.0).max() < 3.0, cl.radius_mm
+    import os, tempfile, zlib
+    import StomachUnfoldLib.volume_file as vf
+    from StomachUnfoldLib.io import read_volume, write_volume
+    assert vf._inflate is zlib
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "ct.nrrd")
+        write_volume(ct, path)
+        on_file = read_volume(path, stream=True)
+        assert isinstance(on_file.array, vf.FileArray) and on_file.array._backend.gzip
+        on_file.array.scan(-500.0)
+        assert np.array_equal(on_file.array[5:50, ::3, 7:40], ct.array[5:50, ::3, 7:40])
     leaked = [m for m in sys.modules if m.split(".")[0] in BLOCKED]
     assert not leaked, leaked
     print("OK", len(names), "modules")
