@@ -220,6 +220,12 @@ def _report(prep: Prepared, method, out, seconds: dict) -> Report:
         warnings=prep.warnings + list(out.warnings), extra={"run": run_info(prep, method, vol)})
 
 
+def _cut_by_scan(ct: Volume, prep) -> tuple:
+    """The CT's k slices ("first", "last") that the front end's lumen reaches: the stomach cut off by the scan."""
+    edges = (("first", prep.crop_lo_ijk[2] == 0, 0), ("last", prep.crop_hi_ijk[2] == int(ct.size[2]), -1))
+    return tuple(which for which, at_edge, sl in edges if at_edge and bool(np.any(prep.lumen[sl])))
+
+
 def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None = None,
            mask: np.ndarray | None = None, incision_curve_lps=None, progress=None) -> UnfoldResult:
     """Unfold the stomach of CT ``ct`` (HU) between the cardia and pylorus points (LPS mm); returns UnfoldResult.
@@ -272,13 +278,9 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
         g = gas_contact_fraction(prep.crop, prep.lumen, params.air_threshold_hu)
         result.report.quality["lumen_gas_contact_fraction"] = g
         return g
-    nk = int(ct.size[2])
-    cut_by_scan = tuple(which for which, at_edge, sl in (("first", prep.crop_lo_ijk[2] == 0, 0),
-                                                           ("last", prep.crop_hi_ijk[2] == nk, -1))
-                        if at_edge and bool(np.any(prep.lumen[sl])))
     result.report.warnings += plausibility_warnings(
         ct, prep.cardia_lps, prep.pylorus_lps, (prep.air_info or {}).get("volume_ml"), result.report.quality,
-        out.unfolded, orient, gas, cut_by_scan)
+        out.unfolded, orient, gas, _cut_by_scan(ct, prep))
     result.report.warnings += hidden_fold_warnings(out.report.get("hidden_folds") or [], out.unfolded, orient)
     seconds["total"] = time.perf_counter() - t_all
     return result
