@@ -305,3 +305,22 @@ def test_a_labels_overlap_with_a_neighbouring_gas_body_is_left_out_and_its_own_g
     assert none == 0
     lum, info = lumen_from_mask(label, ct, ct.voxel_lps(label)[0], ct.voxel_lps(label)[-1], gas_hu=-500.0)
     assert not lum[:, :, 33:35].any() and info["neighbour_gas_ml"] == pytest.approx(0.8)
+
+
+def test_neighbouring_gas_is_found_the_same_on_a_ct_left_on_file(tmp_path):
+    # the command line leaves a CT on file and reads boxes of it: the label's overlap with a gas loop is the same
+    from StomachUnfoldLib.io import read_volume, write_volume
+    from StomachUnfoldLib.preprocessing import drop_neighbour_gas
+
+    hu = np.full((30, 30, 60), 40, np.int16)
+    hu[5:25, 5:25, 33:50] = -900
+    label = np.zeros(hu.shape, bool)
+    label[5:25, 5:25, 5:35] = True
+    ct = Volume(hu, spacing=np.array([0.8, 0.9, 1.5]))
+    path = str(tmp_path / "ct.nrrd")
+    write_volume(ct, path)
+    on_file = read_volume(path, stream=True)
+    assert not isinstance(on_file.array, np.ndarray)
+    a, na = drop_neighbour_gas(label, ct, -500.0)
+    b, nb = drop_neighbour_gas(label, on_file, -500.0)
+    assert na == nb == 800 and np.array_equal(a, b)
