@@ -57,6 +57,9 @@ FRESH_SEEDS = tuple(range(3000, 3030))
 #: seed 1005 had shaped that change, and the fresh seeds had been run with it once). These volumes had been drawn
 #: before only by the point finder's study (``auto_points.AUTO_FRESH_SEEDS``), never unfolded.
 FRESH2_SEEDS = tuple(range(4000, 4030))
+#: A fourth held-out set, first drawn on the evening of 2026-12-04 after every change so far: nothing was decided
+#: or looked at on it before its first bench run.
+FRESH3_SEEDS = tuple(range(5000, 5030))
 #: The methods compared on every random stomach, on the same volumes in one run.
 FAMILY_METHODS = ("isometric", "massspring", "cylindrical", "lscm")
 #: Sizes of the isometric method's surface mesh (``isometric_vertices``; its default among them) run in one part
@@ -377,7 +380,8 @@ def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None
     groups = [("stomachs-tune", TUNE_SEEDS[:3] if quick else TUNE_SEEDS),
               ("stomachs-held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS),
               ("stomachs-fresh", () if quick else FRESH_SEEDS),
-              ("stomachs-fresh-2", () if quick else FRESH2_SEEDS)]
+              ("stomachs-fresh-2", () if quick else FRESH2_SEEDS),
+              ("stomachs-fresh-3", () if quick else FRESH3_SEEDS)]
     cases = []
     for group, seeds in groups:
         for seed in seeds:
@@ -885,6 +889,8 @@ FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults we
                                     "2026-12-01 changes)"),
                  ("stomachs-fresh-2", "Random stomachs, seeds 4000-4029 (a third held-out set, first unfolded after "
                                       "the 2026-12-04 changes)"),
+                 ("stomachs-fresh-3", "Random stomachs, seeds 5000-5029 (a fourth held-out set, first drawn on the "
+                                      "evening of 2026-12-04: nothing was decided on it)"),
                  ("stomachs-hybrid", "Drawn stomachs inserted into the real CTs (held out)"))
 
 

@@ -122,9 +122,10 @@ def test_merge_replaces_rows_by_name_and_keeps_the_rest():
 def test_family_cases_tune_and_held_out_seeds_every_method_on_each():
     cases = bench.family_cases(quick=False, data_dir=None, cache_dir="/nonexistent")
     groups = {c["group"] for c in cases}
-    assert groups == {"stomachs-tune", "stomachs-held-out", "stomachs-fresh", "stomachs-fresh-2"}
+    assert groups == {"stomachs-tune", "stomachs-held-out", "stomachs-fresh", "stomachs-fresh-2", "stomachs-fresh-3"}
     seeds = {c["source"]["random"] for c in cases}
-    sets = (set(bench.TUNE_SEEDS), set(bench.HELD_OUT_SEEDS), set(bench.FRESH_SEEDS), set(bench.FRESH2_SEEDS))
+    sets = (set(bench.TUNE_SEEDS), set(bench.HELD_OUT_SEEDS), set(bench.FRESH_SEEDS), set(bench.FRESH2_SEEDS),
+            set(bench.FRESH3_SEEDS))
     assert seeds == set().union(*sets)
     assert all(not a & b for i, a in enumerate(sets) for b in sets[i + 1:])  # no seed in two sets
     for seed in seeds:
