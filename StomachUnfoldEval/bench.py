@@ -301,6 +301,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
                     cases.append(Case(f"{name}/{m}", src, {}, method=m, group="real"))
     if "stomachs" in parts:
         cases += family_cases(quick, data_dir)
+    elif "hybrids" in parts:  # the hybrids alone (they are part of "stomachs")
+        cases += hybrid_cases(quick, data_dir)
     if "zeroclicks" in parts:
         cases += zero_click_cases(quick)
     if "meshsize" in parts:
@@ -388,13 +390,26 @@ def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None
             src = {"random": int(seed), "size": "small", "_cache": cache}
             for m in FAMILY_METHODS:
                 cases.append(Case(f"stomach-{seed}/{m}", src, {}, method=m, group=group))
+    return cases + hybrid_cases(quick, data_dir, cache_dir)
+
+
+#: The drawn stomachs' seeds for the real CTs, in the order of their file names (the hybrids drawn since 2026-12-01;
+#: they were once taken from the number of cases before them, so a new set of seeds would have changed them).
+HYBRID_SEEDS = (1004, 1001, 1005)
+
+
+def hybrid_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None) -> list[dict]:
+    """A drawn stomach inserted into each real CT of ``data_dir`` (HYBRID_SEEDS), every FAMILY_METHODS on each."""
+    cache = _phantom_cache(cache_dir)
+    cases = []
     if data_dir and os.path.isdir(data_dir) and not quick:
-        for name in sorted(os.listdir(data_dir)):
-            if name.endswith(".nii.gz") and "_seg" not in name and "DERIVED" not in name:
-                src = {"hybrid": 1000 + len(cases) % 7, "ct": os.path.join(data_dir, name), "_cache": cache}
-                for m in FAMILY_METHODS:
-                    cases.append(Case(f"hybrid-{name.split('_')[0]}/{m}", src, {}, method=m,
-                                      group="stomachs-hybrid"))
+        names = [n for n in sorted(os.listdir(data_dir))
+                 if n.endswith(".nii.gz") and "_seg" not in n and "DERIVED" not in n]
+        for n, name in enumerate(names):
+            seed = HYBRID_SEEDS[n] if n < len(HYBRID_SEEDS) else 1000 + n
+            src = {"hybrid": seed, "ct": os.path.join(data_dir, name), "_cache": cache}
+            for m in FAMILY_METHODS:
+                cases.append(Case(f"hybrid-{name.split('_')[0]}/{m}", src, {}, method=m, group="stomachs-hybrid"))
     return cases
 
 

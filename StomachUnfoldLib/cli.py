@@ -518,7 +518,7 @@ def _cmd_phantom(args) -> int:
 
 #: The benchmark's parts (``bench --parts``).
 BENCH_PARTS = ("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling", "stomachs", "memory",
-               "zeroclicks", "meshsize", "autopoints")
+               "zeroclicks", "meshsize", "autopoints", "hybrids")
 
 
 def _cmd_bench(args) -> int:
