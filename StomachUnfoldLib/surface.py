@@ -64,22 +64,23 @@ def sample_profiles(crop: Volume, surf: np.ndarray, normal: np.ndarray, depths: 
             alpha = np.clip((occ - 0.5) / CLEAR_RAMP, 0.0, 1.0)
             v = v.reshape(b - a, d)
             cleared = v + alpha.reshape(b - a, d) * (-1024.0 - v)
-            _keep_outer_tissue(cleared, v)
+            _keep_outer_tissue(cleared, v, depths)
             v = cleared
         out[a:b] = v.reshape(b - a, d)
     return out
 
 
-def _keep_outer_tissue(cleared: np.ndarray, raw: np.ndarray) -> None:
-    """In profiles (N, D; index 0 deepest) that clearing left without tissue, restore the raw HU from the deepest
-    end up to the outermost raw sample above TISSUE_HU (in place)."""
+def _keep_outer_tissue(cleared: np.ndarray, raw: np.ndarray, depths: np.ndarray) -> None:
+    """In profiles (N, D at ``depths`` mm, wall side positive) that clearing left without tissue, restore the raw HU
+    of the outermost raw sample above TISSUE_HU and of every sample deeper than it (in place)."""
     lost = (cleared.max(axis=1) <= TISSUE_HU) & (raw.max(axis=1) > TISSUE_HU)
     if not lost.any():
         return
     rows = np.nonzero(lost)[0]
-    outer = np.argmax(raw[rows] > TISSUE_HU, axis=1)  # the first tissue sample from the deepest end
-    upto = np.arange(raw.shape[1])[None, :] <= outer[:, None]
-    cleared[rows] = np.where(upto, raw[rows], cleared[rows])
+    depths = np.asarray(depths, float)
+    outer = np.where(raw[rows] > TISSUE_HU, depths[None, :], -np.inf).max(axis=1)  # its deepest tissue sample (mm)
+    deeper = depths[None, :] >= outer[:, None]
+    cleared[rows] = np.where(deeper, raw[rows], cleared[rows])
 
 
 def depth_axis(s: float, wall_thickness_mm: float):

@@ -242,4 +242,6 @@ def test_a_label_edge_against_gas_shows_the_labels_own_outer_tissue_not_a_hole()
     assert np.all(prof[0][depths < -2.0] == -1024.0)        # the lumen further in is still cleared
     plain = sample_profiles(crop, surf[1:], normal[1:], depths, lumen)
     assert np.array_equal(prof[1], plain[0])              # a profile with tissue outside the label: unchanged
+    rev = sample_profiles(crop, surf, normal, depths[::-1].copy(), lumen)  # depths in either order: the same samples
+    assert np.array_equal(rev, prof[:, ::-1])
     assert np.all(prof[1][depths > 1.0] == 40.0) and np.all(prof[1][depths < -1.0] == -1024.0)
