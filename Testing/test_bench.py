@@ -97,7 +97,9 @@ def test_the_unlabelled_real_ct_unfolds_its_gas_pocket_at_least_as_fully_as_the_
     k, j, i = np.rint(ct.lps_to_index(np.array([cardia, pylorus]))[:, ::-1]).astype(int).T
     assert np.all(np.asarray(ct.array)[k, j, i] < -500)
     assert iso["grade"] in ("good", "excellent") and iso["failure_parts"] == 0
-    assert iso["visible_fraction"] >= cyl["visible_fraction"] and iso["hole_area_fraction"] < 0.005
+    assert iso["visible_fraction"] >= cyl["visible_fraction"]
+    # no hole: one ray met its thin wall at -402 HU (4.25 mm slices), a pinhole filled from its neighbours
+    assert iso["hole_area_fraction"] == 0.0 and rows["isometric"]["method_report"]["pinholes_filled"] >= 1
     assert any("gas pocket" in w for w in rows["isometric"]["warnings"]), rows["isometric"]["warnings"]
 
 
