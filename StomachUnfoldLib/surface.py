@@ -619,10 +619,11 @@ def fill_pinholes(arr: np.ndarray, max_pixels: int = PINHOLE_PIXELS) -> int:
 
     A pinhole is a patch of at most ``max_pixels`` pixels without tissue (no sample above TISSUE_HU) whose side
     neighbours all have tissue (a corner may touch the outside: the judge counts such a notch as a hole too): a
-    crack between the flat map's triangles that the rasteriser's rim missed, or a wall thinner than a voxel that
-    partial volume holds under the threshold along one ray (a real CT's 4 mm slices), which its neighbours' rays
-    show. Either would be drawn as a black dot in the mucosa. Larger patches and patches on the view's border are
-    left as they are (a gap in the wall, the view's edge). Returns the number of pixels filled.
+    crack that :func:`_close_cracks` left uncovered (no triangle within CRACK_PX + 0.5 pixels: the view shows
+    tissue there, but the maps give no CT point for that pixel), or a wall thinner than a voxel that partial volume
+    holds under the threshold along one ray (a real CT's 4 mm slices), which its neighbours' rays show. Either would
+    be drawn as a black dot in the mucosa. Larger patches and patches on the view's border are left as they are (a
+    gap in the wall, the view's edge). Returns the number of pixels filled.
     """
     seen = arr.max(axis=0) > TISSUE_HU
     empty = ~seen
