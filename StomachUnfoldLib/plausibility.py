@@ -125,8 +125,9 @@ def plausibility_warnings(ct: Volume, cardia_lps, pylorus_lps, lumen_ml: float |
             cut_by_scan = tuple(c for c in cut_by_scan if c != which)  # said already
     for which in cut_by_scan:
         out.append(f"the stomach reaches the {which} slice of the scan: it is cut off by the scan range there, and "
-                   "the view ends where the scan does (a flat cap, or a hole where its gas meets that slice); read "
-                   "the rest on a scan that covers the whole stomach")
+                   "the view ends where the scan does (the isometric view leaves that part of the wall out, open to its "
+                   "border; other methods show a flat cap or a hole there); read the rest on a scan that covers the "
+                   "whole stomach")
     if quality and quality.get("grade") in ("fair", "bad"):
         txt = "; ".join(f"{p['kind']} of {p['area_mm2']:.0f} mm^2 {p['where']}" for p in parts)
         bent = quality.get("bent_area_fraction") or 0.0

@@ -103,6 +103,24 @@ def test_the_unlabelled_real_ct_unfolds_its_gas_pocket_at_least_as_fully_as_the_
     assert any("gas pocket" in w for w in rows["isometric"]["warnings"]), rows["isometric"]["warnings"]
 
 
+@pytest.mark.skipif(not os.path.isfile(os.path.join(SHARED_DIR, "data", "02_totalseg_example_ct_dicom_slab_2mm.nii.gz")),
+                    reason=f"the second real CT is not in {SHARED_DIR}/data (set STOMACHUNFOLD_SHARED)")
+def test_the_slab_shows_only_the_wall_it_imaged_with_no_hole():
+    # real CT 02 is a 40 mm slab that cuts the stomach at both ends: its label's surface is closed there by two flat
+    # caps (about 30 % of it) whose rays read nothing the scan imaged (the label's content at the edge slices, and a
+    # 14 mm^2 hole). The isometric view leaves them out and has no hole. Its cardia and pylorus points lie on the
+    # slab's last and first slices, so each cap is one with an opening, and the cut joins them: no slit is needed
+    d = os.path.join(SHARED_DIR, "data")
+    cases = {c["name"]: c for c in bench._cases(quick=True, full_size=False, data_dir=d, parts=("real",))}
+    row = bench.run_case(cases["real-02-slab/isometric"])
+    assert row["ok"], row.get("error")
+    q, m = row["quality"], row["method_report"]
+    assert m["scan_edge_cap_mm2"] > 4000.0 and m["scan_edge_openings"] == 0 and m["scan_edge_slits_mm"] == []
+    assert m["euler_characteristic"] == 1 and m["boundary_loops"] == 1
+    assert q["grade"] == "excellent" and q["hole_area_fraction"] == 0.0 and q["failure_parts"] == 0
+    assert any("scan" in w and "slice" in w for w in row["warnings"]), row["warnings"]
+
+
 def test_merge_replaces_rows_by_name_and_keeps_the_rest():
     old = {"meta": {"date": "then", "wall_seconds": 9.0}, "full_size": {"500": {"pipeline_s": 5.0}},
            "cases": [{"name": "a", "seconds": 1.0, "group": "real", "ok": False, "error": "x"}, {"name": "b", "seconds": 2.0, "group": "real", "ok": False, "error": "x"}]}

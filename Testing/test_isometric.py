@@ -173,6 +173,38 @@ def test_tiny_phantom_grade_and_distortion(tiny_run):
     assert res.report["unfolded_volume"]["direction"] == np.eye(3).tolist()
 
 
+def test_a_stomach_the_scan_cuts_off_is_shown_without_the_cap_that_closes_it(tiny_run, monkeypatch):
+    # the J's lowest 54 mm left out of the scan: the lumen runs into its first slice, where the iso-surface is closed
+    # by a flat cap that no voxel backs. The cap is left out and its rim slit to the view's border: the cut surface
+    # is still a disc, no vertex of the map lies beyond the scan, and the view has no hole
+    from StomachUnfoldLib.methods.isometric import outside_scan
+
+    ct, truth, whole = tiny_run
+    assert whole.report["method"]["scan_edge_openings"] == 0          # (its oesophagus, cut at the top, is trimmed)
+    assert whole.report["method"]["scan_edge_cap_mm2"] == 0.0
+    sub = ct.crop(np.array([0, 0, 30]), np.array(ct.size))
+
+    def run():
+        return unfold(sub, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                      UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
+
+    def cap_triangles(r):  # triangles of the map wholly beyond the scan's outermost voxel centres
+        return int(outside_scan(r.mesh.rest_lps, sub, 0.0)[r.mesh.cells].all(axis=1).sum())
+
+    res = run()
+    m, q = res.report["method"], res.report["quality"]
+    assert m["scan_edge_openings"] == 1 and m["scan_edge_cap_mm2"] > 100.0
+    assert len(m["scan_edge_slits_mm"]) == 1 and m["scan_edge_slits_mm"][0] > 0.0
+    assert m["euler_characteristic"] == 1 and m["boundary_loops"] == 1
+    assert cap_triangles(res) == 0
+    monkeypatch.setattr("StomachUnfoldLib.methods.isometric.SCAN_EDGE_VOXELS", np.inf)
+    kept = run()                                                      # the cap kept, as before
+    assert cap_triangles(kept) > 100 and kept.report["method"]["scan_edge_openings"] == 0
+    assert q["hole_area_fraction"] == 0.0 and q["failure_parts"] == 0
+    assert q["visible_fraction"] >= 0.95 and m["stretch_max"] <= 1.5 and m["flipped_final"] == 0
+    assert any("first slice of the scan" in w for w in res.report["warnings"])
+
+
 def test_tiny_phantom_markers_in_arc_order_and_round_trip(tiny_run):
     _, truth, res = tiny_run
     mk = {m["id"]: m for m in truth["markers"]}

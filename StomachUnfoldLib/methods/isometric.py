@@ -38,7 +38,7 @@ from . import Method, Unfolding, register
 
 __all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "largest_defect_mm2",
            "triangle_frames", "cot_laplacian", "stretch_stats", "limit_stretch", "cut_along_path", "open_surface",
-           "taubin_smooth", "IsoSurface", "MAX_MESH_VERTICES"]
+           "taubin_smooth", "IsoSurface", "MAX_MESH_VERTICES", "outside_scan"]
 
 #: the default of the ``isometric_vertices`` parameter (the mesh's size is a run's parameter; this is its default)
 MAX_MESH_VERTICES = SurfaceParameters().isometric_vertices
@@ -101,6 +101,12 @@ STRETCH_SOLVES = 100
 #: least this (a triangle squeezed over 20x or turned over is pushed back to 1/19.6): without it the solve turned 3
 #: triangles over on real CT 02 (the slab), so the step was undone there and 253 triangles stayed over 1.5x
 STRETCH_SHRINK_MIN = 0.05
+#: a vertex of the lumen's iso-surface more than that many voxels beyond the CT's first or last voxel centres lies
+#: on the cap that closes a lumen cut off by the scan: the field is padded past the scan, so the cap sits about 0.05
+#: voxel out on the HU field (padded as tissue) and half a voxel out on a mask's; no wall vertex lies beyond the
+#: outermost voxel centres. Real CT 02's 40 mm slab: 6243 of its 18486 vertices (5595 of 18286 mm^2), CT 01's
+#: cut-off fundus: 159 of 2892 (1111 mm^2)
+SCAN_EDGE_VOXELS = 0.0
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
 #: landmarks on the cut surface whose pairwise geodesic distances (10-80 mm) the flat map also keeps (ARAP alone
@@ -991,9 +997,93 @@ def boundary_loops(f: np.ndarray) -> list:
     return [ids[lab == k] for k in range(n)]
 
 
-def _cut_path(v, f, loops, start_loop, end_loop, inc, warnings) -> np.ndarray:
+def outside_scan(v: np.ndarray, ct, tol_voxels: float | None = None) -> np.ndarray:
+    """Bool per vertex (LPS mm): beyond the CT's first or last voxel centres by over ``tol_voxels`` (default
+    SCAN_EDGE_VOXELS) on some axis.
+
+    Only the cap that closes a lumen cut off by the scan's edge lies there (the iso-surface of a padded field).
+    """
+    tol_voxels = SCAN_EDGE_VOXELS if tol_voxels is None else tol_voxels
+    ijk = np.asarray(ct.lps_to_index(np.asarray(v, float)), float)
+    size = np.asarray(ct.size, float)
+    return np.any((ijk < -tol_voxels) | (ijk > size - 1.0 + tol_voxels), axis=1)
+
+
+def _drop_scan_cap(v: np.ndarray, f: np.ndarray, ct) -> tuple[np.ndarray, np.ndarray, float]:
+    """Triangles f without the cap that closes the lumen past the scan's edge (``outside_scan`` at all three corners);
+    returns (f, bool per vertex: on the cap's rim or in it, the cap's area mm^2)."""
+    cap = outside_scan(v, ct)[f].all(axis=1)
+    scan_rim = np.zeros(len(v), bool)
+    scan_rim[np.unique(f[cap])] = True
+    return f[~cap], scan_rim, (_area_mm2(v, f[cap]) if cap.any() else 0.0)
+
+
+def _slit_scan_edges(v: np.ndarray, f: np.ndarray, orig: np.ndarray, scan_rim: np.ndarray, n: int, on_cut: int):
+    """Slit up to ``n`` openings at the scan's edge of a cut mesh (v LPS mm, f; ``orig``: each vertex's original,
+    ``scan_rim`` indexed by originals) to the rest of the boundary; returns (v, f, orig, slit lengths mm)."""
+    slits = []
+    for _ in range(n):
+        slit = _scan_edge_slit(v, f, scan_rim[orig], on_cut)
+        if slit is None:
+            break
+        slits.append(float(np.linalg.norm(np.diff(v[slit], axis=0), axis=1).sum()))
+        v, f, src = cut_along_path(v, f, slit, ends_on_boundary=True)
+        orig = np.concatenate([orig, orig[src]])
+    return v, f, orig, slits
+
+
+def _scan_edge_slit(v: np.ndarray, f: np.ndarray, scan_rim: np.ndarray, on_cut: int) -> np.ndarray | None:
+    """Vertex ids of the shortest edge path (mm) from a boundary loop at the scan's edge (one with a ``scan_rim``
+    vertex, other than the loop of vertex ``on_cut``, the cut's) to another loop, through interior vertices only;
+    None if there is none.
+
+    Cut open, it joins that opening to the rest of the boundary, so the mesh stays a disc.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    loops = boundary_loops(f)
+    if len(loops) < 2:
+        return None
+    edge_loops = [b for b in loops if on_cut not in b and scan_rim[b].any()]
+    if not edge_loops:
+        return None
+    src = edge_loops[0]
+    nv = len(v)
+    bnd = np.zeros(nv, bool)
+    for b in loops:
+        bnd[b] = True
+    in_src = np.zeros(nv, bool)
+    in_src[src] = True
+    e = _edges(f)
+    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    # interior-interior edges, and edges between the interior and a boundary vertex (from the source loop or to a
+    # target); never along or across the boundary alone
+    ok = ~(bnd[e[:, 0]] & bnd[e[:, 1]])
+    rows = np.concatenate([e[ok, 0], np.full(len(src), nv)])
+    cols = np.concatenate([e[ok, 1], src])
+    vals = np.concatenate([length[ok], np.full(len(src), 1e-9)])
+    G = coo_matrix((vals, (rows, cols)), shape=(nv + 1, nv + 1)).tocsr()
+    # a path may not run through a boundary vertex: those are ends only (searching from the source, a boundary
+    # vertex reached is a target; the shortest target's path runs through interior vertices by construction)
+    dist, pred = dijkstra(G, directed=False, indices=nv, return_predecessors=True)
+    tgt = np.flatnonzero(bnd & ~in_src & np.isfinite(dist[:nv]))
+    if not len(tgt):
+        return None
+    t = int(tgt[np.argmin(dist[tgt])])
+    path = [t]
+    while pred[path[-1]] != nv:
+        path.append(int(pred[path[-1]]))
+    path = np.array(path[::-1])
+    if bnd[path[1:-1]].any():
+        return None
+    return path
+
+
+def _cut_path(v, f, loops, start_loop, end_loop, inc, warnings, avoid=None) -> np.ndarray:
     """Vertex ids of the cut: the Dijkstra path on the mesh edges from the cardia opening to the pylorus opening,
-    edge cost length x (1 + (distance to the incision line / 2 mm)^2), never along a boundary. The path may start at
+    edge cost length x (1 + (distance to the incision line / 2 mm)^2), never along a boundary, nor through a vertex
+    of ``avoid`` (bool per vertex: the openings at the scan's edge) where another path exists. The path may start at
     any vertex of the cardia opening (a virtual source joins them, each at the cost of its distance to the incision
     line), so an opening vertex whose every edge runs along a boundary cannot strand the cut."""
     from scipy.sparse import coo_matrix
@@ -1017,12 +1107,16 @@ def _cut_path(v, f, loops, start_loop, end_loop, inc, warnings) -> np.ndarray:
     okc = ~(bnd_v[e[:, 0]] & bnd_v[e[:, 1]])
     nv = len(v)
     start = np.asarray(start_loop, np.int64)
-    rows = np.concatenate([e[okc, 0], np.full(len(start), nv)])
-    cols = np.concatenate([e[okc, 1], start])
-    vals = np.concatenate([cost[okc], 1e-6 + d_inc[start] * (1.0 + (d_inc[start] / 2.0) ** 2)])
-    G = coo_matrix((vals, (rows, cols)), shape=(nv + 1, nv + 1)).tocsr()
-    dist, pred = dijkstra(G, directed=False, indices=nv, return_predecessors=True)
-    tgt = end_loop[np.argmin(dist[end_loop])]
+    for bar in ((avoid[e[:, 0]] | avoid[e[:, 1]]) if avoid is not None and avoid.any() else None, None):
+        ok = okc & ~bar if bar is not None else okc
+        rows = np.concatenate([e[ok, 0], np.full(len(start), nv)])
+        cols = np.concatenate([e[ok, 1], start])
+        vals = np.concatenate([cost[ok], 1e-6 + d_inc[start] * (1.0 + (d_inc[start] / 2.0) ** 2)])
+        G = coo_matrix((vals, (rows, cols)), shape=(nv + 1, nv + 1)).tocsr()
+        dist, pred = dijkstra(G, directed=False, indices=nv, return_predecessors=True)
+        tgt = end_loop[np.argmin(dist[end_loop])]
+        if np.isfinite(dist[tgt]):
+            break
     if not np.isfinite(dist[tgt]):
         raise AnatomyError("no path on the lumen surface joins the cardia and pylorus openings")
     path = [int(tgt)]
@@ -1040,10 +1134,13 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
 
     The closed iso-surface of the lumen is smoothed (Taubin), the cardia and pylorus openings that the quality
     judge leaves out (``centerline.in_openings``: nearest to an end point, ``margin_mm`` behind its plane and within
-    OPENING_RADIUS_MM of it) are removed, with whatever they cut off (a gas-filled oesophagus or duodenum), and the
+    OPENING_RADIUS_MM of it) are removed, with whatever they cut off (a gas-filled oesophagus or duodenum), and so
+    is the cap that closes the lumen where it runs into the scan's edge (``outside_scan``: no CT voxel backs it); the
     tube is cut along the shortest mesh path
     from the cardia opening to the pylorus opening that keeps close to the incision line (Dijkstra, edge cost
-    length x (1 + (distance to the incision / 2 mm)^2)); the path's vertices are duplicated.
+    length x (1 + (distance to the incision / 2 mm)^2)); the path's vertices are duplicated. Each opening left at
+    the scan's edge is then slit to the rest of the boundary along the shortest mesh path, so the cut surface stays a
+    disc and the view shows that part of the wall as missing from its border, not as mucosa or as a hole.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import breadth_first_order
@@ -1071,10 +1168,13 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
             d = np.linalg.norm(v - P[end], axis=1)
             beyond |= d < d.min() + 2.0
     f = f[~beyond[f].any(axis=1)]
+    # where the lumen runs into the scan's edge its surface is closed by a cap that no voxel of the CT backs: its rays
+    # would read the clipped edge slice (mucosa that was never imaged). The cap is left out; its rim is slit below.
+    f, scan_rim, cap_mm2 = _drop_scan_cap(v, f, prep.ct)
     if len(f) < 100:
         raise AnatomyError("the lumen surface between the cardia and pylorus has almost no triangles; check the points")
     f = f[largest_component(len(v), f)]
-    v, f = compact(v, f)
+    v, f, scan_rim = compact(v, f, scan_rim)
     # outward (lumen -> wall) orientation: away from the centreline for most vertices
     a_d = np.linspace(0.0, arc[-1], max(3, int(np.ceil(arc[-1] / 0.5)) + 1))
     Pd = np.stack([np.interp(a_d, arc, P[:, c]) for c in range(3)], 1)
@@ -1089,16 +1189,22 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     # the openings: the boundary loops nearest the centreline's two ends (others are holes of the surface)
     start_loop = min(loops, key=lambda b: near[b].mean())
     end_loop = max(loops, key=lambda b: near[b].mean())
-    if len(loops) > 2:
-        warnings.append(f"the lumen surface has {len(loops) - 2} holes besides the two openings")
+    at_edge = [b for b in loops if b is not start_loop and b is not end_loop and scan_rim[b].any()]
+    if len(loops) - 2 - len(at_edge) > 0:
+        warnings.append(f"the lumen surface has {len(loops) - 2 - len(at_edge)} holes besides the two openings")
     progress(0.6)
-    path = _cut_path(v, f, loops, start_loop, end_loop, inc, warnings)
+    avoid = np.zeros(len(v), bool)
+    for b in at_edge:
+        avoid[b] = True
+    path = _cut_path(v, f, loops, start_loop, end_loop, inc, warnings, avoid)
     progress(0.7)
     nv0 = len(v)
     v2, f2, srcv = cut_along_path(v, f, path, ends_on_boundary=True)
-    partner = np.concatenate([np.full(nv0, -1), srcv])
-    vn2 = np.concatenate([vn, vn[srcv]])
-    near2 = np.concatenate([near, near[srcv]])
+    orig = np.concatenate([np.arange(nv0), srcv])
+    v2, f2, orig, slits = _slit_scan_edges(v2, f2, orig, scan_rim, len(at_edge), int(path[0]))
+    partner = np.where(np.arange(len(v2)) >= nv0, orig, -1)
+    vn2 = vn[orig]
+    near2 = near[orig]
     # angle about the centreline from the incision direction, unwrapped over the disc by a breadth-first walk
     Ts = smooth_tangents(P, arc)
     Td = unit(np.stack([np.interp(a_d, arc, Ts[:, c]) for c in range(3)], 1))
@@ -1132,7 +1238,8 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
             "triangles": int(len(f2)), "cut_vertices": int(len(path)),
             "cut_length_mm": float(np.linalg.norm(np.diff(v[path], axis=0), axis=1).sum()),
             "euler_characteristic": int(euler), "boundary_loops": n_loops, "boundary_edges": int(len(bnd)),
-            "trimmed_vertices": int(beyond.sum())}
+            "trimmed_vertices": int(beyond.sum()), "scan_edge_cap_mm2": float(cap_mm2),
+            "scan_edge_openings": len(at_edge), "scan_edge_slits_mm": slits}
     return IsoSurface(v2, f2, vn2, near2, theta, partner, bnd, Pd, info)
 
 
