@@ -605,7 +605,7 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
     jj, ii = np.nonzero(covered)
     arr[:, jj, ii] = prof.T
     arr = to_int16(arr)
-    pinholes = fill_pinholes(arr)                         # on the stored HU: the view's reader sees the same
+    pinholes = fill_pinholes(arr, tri=tri)                # on the stored HU: the view's reader sees the same
     vol = Volume(arr, np.full(3, s), np.zeros(3), np.eye(3))
     to_unfolded, to_original = _flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps)
     mesh = Mesh(v, np.concatenate([uv, np.full((len(uv), 1), k0 * s)], 1), f, "triangle", f)
@@ -618,16 +618,17 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
 PINHOLE_PIXELS = 2   # a view's patch without tissue of at most this many pixels, tissue all round it, is a pinhole
 
 
-def fill_pinholes(arr: np.ndarray, max_pixels: int = PINHOLE_PIXELS) -> int:
+def fill_pinholes(arr: np.ndarray, max_pixels: int = PINHOLE_PIXELS, tri: np.ndarray | None = None) -> int:
     """Give pinholes of a view (arr (K,J,I) HU, k the depth) the median profile of their neighbours; in place.
 
     A pinhole is a patch of at most ``max_pixels`` pixels without tissue (no sample above TISSUE_HU) whose side
     neighbours all have tissue (a corner may touch the outside: the judge counts such a notch as a hole too): a
-    crack that :func:`_close_cracks` left uncovered (no triangle within CRACK_PX + 0.5 pixels: the view shows
-    tissue there, but the maps give no CT point for that pixel), or a wall thinner than a voxel that partial volume
-    holds under the threshold along one ray (a real CT's 4 mm slices), which its neighbours' rays show. Either would
-    be drawn as a black dot in the mucosa. Larger patches and patches on the view's border are left as they are (a
-    gap in the wall, the view's edge). Returns the number of pixels filled.
+    crack that :func:`_close_cracks` left uncovered (no triangle within CRACK_PX + 0.5 pixels), or a wall thinner
+    than a voxel that partial volume holds under the threshold along one ray (a real CT's 4 mm slices), which its
+    neighbours' rays show. Either would be drawn as a black dot in the mucosa. Larger patches and patches on the
+    view's border are left as they are (a gap in the wall, the view's edge). With ``tri`` (J,I: the raster's
+    triangle per pixel, -1 none; in place) a filled crack pixel takes a neighbour's triangle, so the view-to-CT map
+    finds a point there (extrapolated from that triangle, under a pixel away). Returns the number of pixels filled.
     """
     seen = arr.max(axis=0) > TISSUE_HU
     empty = ~seen
@@ -649,6 +650,12 @@ def fill_pinholes(arr: np.ndarray, max_pixels: int = PINHOLE_PIXELS) -> int:
         sub = arr[:, box[0], box[1]]
         sub[:, patch] = np.round(np.median(sub[:, ring], axis=1))[:, None]
         filled += int(patch.sum())
+        if tri is not None:
+            t = tri[box]
+            crack = patch & (t < 0)
+            if crack.any():  # the triangle of a neighbour with one, nearest first (side neighbours before corners)
+                _, (nj_, ni_) = ndimage.distance_transform_edt(t < 0, return_indices=True)
+                t[crack] = t[nj_[crack], ni_[crack]]
     return filled
 
 

@@ -286,8 +286,20 @@ def test_pinholes_take_their_neighbours_profile_and_nothing_else_changes():
     a[:, 19, 12] = -1024                                     # on the border
     a[:, 3, 3] = -1024                                       # open to the outside (2, 2) by a corner only
     before = a.copy()
-    n = fill_pinholes(a)
+    # the raster's triangle per pixel: (6,6) and (10,10) are cracks no triangle covers, the other pinholes are
+    # covered (a thin wall's ray); the outside and the unfilled pixel next to it have none
+    tri = np.arange(nj * ni).reshape(nj, ni)
+    tri[:3, :3] = -1
+    tri[1, 3] = -1
+    tri[6, 6] = tri[10, 10] = -1
+    tri_before = tri.copy()
+    n = fill_pinholes(a, tri=tri)
     assert n == 5                                            # (6,6), (10,10), (10,11), (3,14), (3,3)
+    # a filled crack takes a side neighbour's triangle (the view-to-CT map then finds a point there); nothing else
+    assert tri[6, 6] in {tri[5, 6], tri[7, 6], tri[6, 5], tri[6, 7]}
+    assert tri[10, 10] in {tri[9, 10], tri[11, 10], tri[10, 9], tri[10, 11]}  # (10,11): a covered pinhole
+    moved = tri != tri_before
+    assert moved.sum() == 2 and moved[6, 6] and moved[10, 10] and tri[1, 3] == -1
     for j, i in [(6, 6), (10, 10), (10, 11), (3, 14), (3, 3)]:
         assert np.array_equal(a[:, j, i], prof)              # the median of the neighbours' profiles
     seen = view.first_hit(Volume(a, spacing=(1.0, 1.0, 0.5)))[0] >= 0
