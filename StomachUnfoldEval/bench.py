@@ -63,6 +63,9 @@ FRESH3_SEEDS = tuple(range(5000, 5030))
 #: A fifth held-out set, first drawn late on 2026-12-04 to decide (with the four sets above) on an incision in the
 #: stomach's plane, which was not kept; never tuned on. The bench part ``fresh-4`` runs it alone.
 FRESH4_SEEDS = tuple(range(6000, 6030))
+#: A sixth held-out set, first drawn at night on 2026-12-04 after every change of the day, to report the method as it
+#: stands: nothing was decided or looked at on it before its first bench run. The bench part ``fresh-5`` runs it alone.
+FRESH5_SEEDS = tuple(range(7000, 7030))
 #: The methods compared on every random stomach, on the same volumes in one run.
 FAMILY_METHODS = ("isometric", "massspring", "cylindrical", "lscm")
 #: Sizes of the isometric method's surface mesh (``isometric_vertices``; its default among them) run in one part
@@ -307,8 +310,9 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
     else:
         if "hybrids" in parts:  # the hybrids alone (they are part of "stomachs")
             cases += hybrid_cases(quick, data_dir)
-        if "fresh-4" in parts:  # the fifth held-out set alone (part of "stomachs")
-            cases += [c for c in family_cases(quick, None) if c["group"] == "stomachs-fresh-4"]
+        for part in ("fresh-4", "fresh-5"):  # the fifth or sixth held-out set alone (part of "stomachs")
+            if part in parts:
+                cases += [c for c in family_cases(quick, None) if c["group"] == f"stomachs-{part}"]
     if "zeroclicks" in parts:
         cases += zero_click_cases(quick)
     if "meshsize" in parts:
@@ -390,7 +394,8 @@ def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None
               ("stomachs-fresh", () if quick else FRESH_SEEDS),
               ("stomachs-fresh-2", () if quick else FRESH2_SEEDS),
               ("stomachs-fresh-3", () if quick else FRESH3_SEEDS),
-              ("stomachs-fresh-4", () if quick else FRESH4_SEEDS)]
+              ("stomachs-fresh-4", () if quick else FRESH4_SEEDS),
+              ("stomachs-fresh-5", () if quick else FRESH5_SEEDS)]
     cases = []
     for group, seeds in groups:
         for seed in seeds:
@@ -915,6 +920,8 @@ FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults we
                                       "evening of 2026-12-04: nothing was decided on it)"),
                  ("stomachs-fresh-4", "Random stomachs, seeds 6000-6029 (a fifth held-out set, first drawn late on "
                                       "2026-12-04 to decide on an incision in the stomach's plane, not kept)"),
+                 ("stomachs-fresh-5", "Random stomachs, seeds 7000-7029 (a sixth held-out set, first drawn at night "
+                                      "on 2026-12-04 after every change of the day: nothing was decided on it)"),
                  ("stomachs-hybrid", "Drawn stomachs inserted into the real CTs (held out)"))
 
 

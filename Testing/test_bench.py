@@ -143,10 +143,10 @@ def test_family_cases_tune_and_held_out_seeds_every_method_on_each():
     cases = bench.family_cases(quick=False, data_dir=None, cache_dir="/nonexistent")
     groups = {c["group"] for c in cases}
     assert groups == {"stomachs-tune", "stomachs-held-out", "stomachs-fresh", "stomachs-fresh-2", "stomachs-fresh-3",
-                      "stomachs-fresh-4"}
+                      "stomachs-fresh-4", "stomachs-fresh-5"}
     seeds = {c["source"]["random"] for c in cases}
     sets = (set(bench.TUNE_SEEDS), set(bench.HELD_OUT_SEEDS), set(bench.FRESH_SEEDS), set(bench.FRESH2_SEEDS),
-            set(bench.FRESH3_SEEDS), set(bench.FRESH4_SEEDS))
+            set(bench.FRESH3_SEEDS), set(bench.FRESH4_SEEDS), set(bench.FRESH5_SEEDS))
     assert seeds == set().union(*sets)
     assert all(not a & b for i, a in enumerate(sets) for b in sets[i + 1:])  # no seed in two sets
     for seed in seeds:
@@ -325,10 +325,11 @@ def test_hybrid_seeds_do_not_depend_on_the_other_sets(tmp_path):
     assert [(c["name"], c["source"]["hybrid"]) for c in alone] == [(c["name"], c["source"]["hybrid"]) for c in hybrids]
 
 
-def test_fresh_4_part_runs_that_set_alone_with_every_method():
-    alone = bench._cases(False, False, None, ["fresh-4"])
-    assert {c["group"] for c in alone} == {"stomachs-fresh-4"}
-    assert {c["source"]["random"] for c in alone} == set(bench.FRESH4_SEEDS)
-    assert len(alone) == len(bench.FRESH4_SEEDS) * len(bench.FAMILY_METHODS)
-    whole = [c["name"] for c in bench._cases(False, False, None, ["stomachs"]) if c["group"] == "stomachs-fresh-4"]
+@pytest.mark.parametrize("part,seeds", [("fresh-4", "FRESH4_SEEDS"), ("fresh-5", "FRESH5_SEEDS")])
+def test_a_fresh_part_runs_that_set_alone_with_every_method(part, seeds):
+    alone = bench._cases(False, False, None, [part])
+    assert {c["group"] for c in alone} == {f"stomachs-{part}"}
+    assert {c["source"]["random"] for c in alone} == set(getattr(bench, seeds))
+    assert len(alone) == len(getattr(bench, seeds)) * len(bench.FAMILY_METHODS)
+    whole = [c["name"] for c in bench._cases(False, False, None, ["stomachs"]) if c["group"] == f"stomachs-{part}"]
     assert whole == [c["name"] for c in alone]
