@@ -101,11 +101,12 @@ STRETCH_SOLVES = 100
 #: least this (a triangle squeezed over 20x or turned over is pushed back to 1/19.6): without it the solve turned 3
 #: triangles over on real CT 02 (the slab), so the step was undone there and 253 triangles stayed over 1.5x
 STRETCH_SHRINK_MIN = 0.05
-#: a vertex of the lumen's iso-surface more than that many voxels beyond the CT's first or last voxel centres lies
-#: on the cap that closes a lumen cut off by the scan: the field is padded past the scan, so the cap sits about 0.05
-#: voxel out on the HU field (padded as tissue) and half a voxel out on a mask's; no wall vertex lies beyond the
-#: outermost voxel centres. Real CT 02's 40 mm slab: 6243 of its 18486 vertices (5595 of 18286 mm^2), CT 01's
-#: cut-off fundus: 159 of 2892 (1111 mm^2)
+#: a triangle of the lumen's iso-surface whose three corners all lie more than that many voxels beyond the CT's first
+#: or last voxel centres is part of the cap that closes a lumen cut off by the scan: the field is padded past the
+#: scan, so the cap sits about 0.05 voxel out on the HU field (padded as tissue) and half a voxel out on a mask's
+#: (smoothing pulls its rim in a little, so a wall triangle beside it may have a corner out there, not all three).
+#: Real CT 02's 40 mm slab: 6243 of its 18486 vertices out (5595 of 18286 mm^2), CT 01's cut-off fundus: 159 of
+#: 2892 (1111 mm^2)
 SCAN_EDGE_VOXELS = 0.0
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
