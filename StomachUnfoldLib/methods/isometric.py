@@ -3,7 +3,8 @@ lumen surface, then sampling the CT along the wall's normals.
 
 Stages: the inner wall's iso-surface (``surface.inner_surface``), either trimmed at the centreline's end planes
 (``isometric_surface="trimmed"``, as the lscm peer) or the whole lumen's closed surface with small holes at the
-cardia and pylorus openings (``"whole"``: keeps the fundus dome); a cut along the incision line (on the whole
+cardia and pylorus openings (``"whole"``: keeps the fundus dome; where the lumen runs into the scan's edge, the cap
+that closes it there is left out and slit to the border); a cut along the incision line (on the whole
 surface a Dijkstra path on the mesh's edges from opening to opening, its vertices duplicated) makes a disc; the
 flat map starts from the tube's conformal map (or LSCM with two pins) and is relaxed by ARAP local/global
 iterations (cotangent Laplacian factorised once, per-triangle closest rotations, free boundary, the pyloric half's
