@@ -310,9 +310,9 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
     else:
         if "hybrids" in parts:  # the hybrids alone (they are part of "stomachs")
             cases += hybrid_cases(quick, data_dir)
-        for part in ("fresh-4", "fresh-5"):  # the fifth or sixth held-out set alone (part of "stomachs")
-            if part in parts:
-                cases += [c for c in family_cases(quick, None) if c["group"] == f"stomachs-{part}"]
+        fresh = {f"stomachs-{p}" for p in ("fresh-4", "fresh-5") if p in parts}  # held-out sets alone (in "stomachs")
+        if fresh:
+            cases += [c for c in family_cases(quick, None) if c["group"] in fresh]
     if "zeroclicks" in parts:
         cases += zero_click_cases(quick)
     if "meshsize" in parts:

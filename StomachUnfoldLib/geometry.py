@@ -18,7 +18,7 @@ import numpy as np
 
 from .volume_file import FileArray
 
-__all__ = ["Volume", "ras_to_lps", "lps_to_ras"]
+__all__ = ["Volume", "ras_to_lps", "lps_to_ras", "onto_edge_voxels"]
 
 
 def ras_to_lps(points):
@@ -32,6 +32,14 @@ def ras_to_lps(points):
 def lps_to_ras(points):
     """Convert points from LPS mm (ITK) to RAS mm (Slicer) by negating x and y; returns float64 (N,3) or (3,)."""
     return ras_to_lps(points)
+
+
+def onto_edge_voxels(coords, shape) -> np.ndarray:
+    """Continuous voxel coordinates (rows per axis, in ``shape``'s axis order) with those in the outer half of an edge
+    voxel moved onto its centre, so that they read that voxel; coordinates further out are left as they are."""
+    coords = np.asarray(coords, float)
+    top = np.asarray(shape, float)[:, None] - 1.0
+    return np.where((coords >= -0.5) & (coords <= top + 0.5), np.clip(coords, 0.0, top), coords)
 
 
 class _ImageBuffer:
@@ -150,10 +158,7 @@ class Volume:
 
         lps = np.asarray(lps, dtype=float)
         ijk = self.lps_to_index(lps.reshape(-1, 3))
-        coords = ijk[:, ::-1].T  # (k, j, i) rows for map_coordinates
-        top = np.asarray(self.array.shape, float)[:, None] - 1.0
-        edge = (coords >= -0.5) & (coords <= top + 0.5)
-        coords = np.where(edge, np.clip(coords, 0.0, top), coords)
+        coords = onto_edge_voxels(ijk[:, ::-1].T, self.array.shape)  # (k, j, i) rows for map_coordinates
         out = ndimage.map_coordinates(self.array, coords, order=order, mode="constant", cval=cval,
                                       output=np.float32, prefilter=False)
         return out.reshape(lps.shape[:-1])

@@ -11,7 +11,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from .errors import AnatomyError, SimulationError
-from .geometry import Volume
+from .geometry import Volume, onto_edge_voxels
 from .preprocessing import lumen_edge
 from .progress import Progress
 
@@ -57,11 +57,9 @@ def sample_profiles(crop: Volume, surf: np.ndarray, normal: np.ndarray, depths: 
         p = surf[a:b, None, :] + depths[None, :, None] * normal[a:b, None, :]
         v = crop.sample(p.reshape(-1, 3), order=1, cval=-1024.0)
         if soft is not None:
-            coords = crop.lps_to_index(p.reshape(-1, 3))[:, ::-1].T
             # the edge voxels' outer halves read the edge voxel, as crop.sample reads the HU there: where the lumen
             # meets the scan's edge, a lumen sample there is cleared like its HU's voxel, not shown as wall
-            top = np.asarray(soft.shape, float)[:, None] - 1.0
-            coords = np.where((coords >= -0.5) & (coords <= top + 0.5), np.clip(coords, 0.0, top), coords)
+            coords = onto_edge_voxels(crop.lps_to_index(p.reshape(-1, 3))[:, ::-1].T, soft.shape)
             occ = ndimage.map_coordinates(soft, coords, order=1, mode="constant", cval=0.0, prefilter=False)
             # cleared in proportion across the surface (a ramp over CLEAR_RAMP of the field), so that where the
             # view finds the wall moves smoothly with it, not in steps of the depth samples

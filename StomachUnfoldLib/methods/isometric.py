@@ -1034,6 +1034,28 @@ def _slit_scan_edges(v: np.ndarray, f: np.ndarray, orig: np.ndarray, scan_rim: n
     return v, f, orig, slits
 
 
+def _search_from(e: np.ndarray, cost: np.ndarray, ok: np.ndarray, start: np.ndarray, start_cost, nv: int):
+    """Dijkstra over the edges e (E,2) allowed by ``ok``, with costs ``cost``, from a virtual source (vertex ``nv``)
+    joined to every vertex of ``start`` at ``start_cost``: returns (distances, predecessors), the source included."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    start = np.asarray(start, np.int64)
+    rows = np.concatenate([e[ok, 0], np.full(len(start), nv)])
+    cols = np.concatenate([e[ok, 1], start])
+    vals = np.concatenate([cost[ok], np.broadcast_to(start_cost, start.shape)])
+    G = coo_matrix((vals, (rows, cols)), shape=(nv + 1, nv + 1)).tocsr()
+    return dijkstra(G, directed=False, indices=nv, return_predecessors=True)
+
+
+def _path_to(pred: np.ndarray, t: int, source: int) -> np.ndarray:
+    """Vertex ids of the path from the virtual ``source`` of :func:`_search_from` to ``t``, source left out."""
+    path = [int(t)]
+    while pred[path[-1]] != source:
+        path.append(int(pred[path[-1]]))
+    return np.array(path[::-1])
+
+
 def _scan_edge_slit(v: np.ndarray, f: np.ndarray, scan_rim: np.ndarray, on_cut: int) -> np.ndarray | None:
     """Vertex ids of the shortest edge path (mm) from a boundary loop at the scan's edge (one with a ``scan_rim``
     vertex, other than the loop of vertex ``on_cut``, the cut's) to another loop, through interior vertices only;
@@ -1041,12 +1063,7 @@ def _scan_edge_slit(v: np.ndarray, f: np.ndarray, scan_rim: np.ndarray, on_cut: 
 
     Cut open, it joins that opening to the rest of the boundary, so the mesh stays a disc.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
-
     loops = boundary_loops(f)
-    if len(loops) < 2:
-        return None
     edge_loops = [b for b in loops if on_cut not in b and scan_rim[b].any()]
     if not edge_loops:
         return None
@@ -1062,21 +1079,13 @@ def _scan_edge_slit(v: np.ndarray, f: np.ndarray, scan_rim: np.ndarray, on_cut: 
     # interior-interior edges, and edges between the interior and a boundary vertex (from the source loop or to a
     # target); never along or across the boundary alone
     ok = ~(bnd[e[:, 0]] & bnd[e[:, 1]])
-    rows = np.concatenate([e[ok, 0], np.full(len(src), nv)])
-    cols = np.concatenate([e[ok, 1], src])
-    vals = np.concatenate([length[ok], np.full(len(src), 1e-9)])
-    G = coo_matrix((vals, (rows, cols)), shape=(nv + 1, nv + 1)).tocsr()
     # a path may not run through a boundary vertex: those are ends only (searching from the source, a boundary
     # vertex reached is a target; the shortest target's path runs through interior vertices by construction)
-    dist, pred = dijkstra(G, directed=False, indices=nv, return_predecessors=True)
+    dist, pred = _search_from(e, length, ok, src, 1e-9, nv)
     tgt = np.flatnonzero(bnd & ~in_src & np.isfinite(dist[:nv]))
     if not len(tgt):
         return None
-    t = int(tgt[np.argmin(dist[tgt])])
-    path = [t]
-    while pred[path[-1]] != nv:
-        path.append(int(pred[path[-1]]))
-    path = np.array(path[::-1])
+    path = _path_to(pred, int(tgt[np.argmin(dist[tgt])]), nv)
     if bnd[path[1:-1]].any():
         return None
     return path
@@ -1088,8 +1097,6 @@ def _cut_path(v, f, loops, start_loop, end_loop, inc, warnings, avoid=None) -> n
     of ``avoid`` (bool per vertex: the openings at the scan's edge) where another path exists. The path may start at
     any vertex of the cardia opening (a virtual source joins them, each at the cost of its distance to the incision
     line), so an opening vertex whose every edge runs along a boundary cannot strand the cut."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
     from scipy.spatial import cKDTree
 
     ip = np.asarray(inc.points_lps, float)
@@ -1109,22 +1116,17 @@ def _cut_path(v, f, loops, start_loop, end_loop, inc, warnings, avoid=None) -> n
     okc = ~(bnd_v[e[:, 0]] & bnd_v[e[:, 1]])
     nv = len(v)
     start = np.asarray(start_loop, np.int64)
-    for bar in ((avoid[e[:, 0]] | avoid[e[:, 1]]) if avoid is not None and avoid.any() else None, None):
-        ok = okc & ~bar if bar is not None else okc
-        rows = np.concatenate([e[ok, 0], np.full(len(start), nv)])
-        cols = np.concatenate([e[ok, 1], start])
-        vals = np.concatenate([cost[ok], 1e-6 + d_inc[start] * (1.0 + (d_inc[start] / 2.0) ** 2)])
-        G = coo_matrix((vals, (rows, cols)), shape=(nv + 1, nv + 1)).tocsr()
-        dist, pred = dijkstra(G, directed=False, indices=nv, return_predecessors=True)
+    start_cost = 1e-6 + d_inc[start] * (1.0 + (d_inc[start] / 2.0) ** 2)
+    avoided = avoid is not None and bool(avoid.any())
+    ok = okc & ~(avoid[e[:, 0]] | avoid[e[:, 1]]) if avoided else okc
+    dist, pred = _search_from(e, cost, ok, start, start_cost, nv)
+    tgt = end_loop[np.argmin(dist[end_loop])]
+    if not np.isfinite(dist[tgt]) and avoided:   # the only way runs through those openings: taken
+        dist, pred = _search_from(e, cost, okc, start, start_cost, nv)
         tgt = end_loop[np.argmin(dist[end_loop])]
-        if np.isfinite(dist[tgt]):
-            break
     if not np.isfinite(dist[tgt]):
         raise AnatomyError("no path on the lumen surface joins the cardia and pylorus openings")
-    path = [int(tgt)]
-    while pred[path[-1]] != nv:
-        path.append(int(pred[path[-1]]))
-    path = np.array(path[::-1])
+    path = _path_to(pred, tgt, nv)
     if bnd_v[path[1:-1]].any():
         warnings.append("the cut path touches a hole of the surface")
     return path
