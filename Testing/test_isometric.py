@@ -140,6 +140,47 @@ def test_boundary_self_intersection():
     assert boundary_self_intersects(bow, loop)
 
 
+def test_a_crossing_the_global_strain_step_made_is_undone_where_it_is():
+    from StomachUnfoldLib.methods.isometric import _uncross, boundary_crossings
+
+    # a grid whose outline has a slit: two boundary stretches 0.05 apart; the "global step" moved the whole map
+    # a little and pushed one side of the slit over the other; only the vertices near the crossing go back
+    n = 11
+    U, V = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    uv0 = np.stack([U.ravel(), V.ravel()], 1)
+    slit = (uv0[:, 0] == 5) & (uv0[:, 1] >= 5)
+    uv0[slit, 0] -= 0.45                                   # the slit's left side
+    right = uv0.copy()
+    right[slit, 0] += 0.5                                  # its right side, 0.05 away
+    uv0 = np.concatenate([uv0, right[slit]])
+    ids = np.arange(n * n).reshape(n, n)
+    dup = np.full(n * n, -1)
+    dup[np.flatnonzero(slit)] = n * n + np.arange(slit.sum())
+    f = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = ids[i, j], ids[i + 1, j], ids[i + 1, j + 1], ids[i, j + 1]
+            if i == 5 and j >= 5:                          # the cells right of the slit use its right side
+                a, d = dup[a], dup[d]
+            f += [[a, b, c], [a, c, d]]
+    f = np.array(f)
+    from StomachUnfoldLib.methods.isometric import _boundary_edges
+
+    be = _boundary_edges(f)
+    assert len(boundary_crossings(uv0, be)) == 0
+    uv = uv0 * 1.01                                        # the whole map moved (up to 0.14)
+    uv[n * n + np.flatnonzero(uv0[n * n:, 1] == 8)] -= [0.6, 0.0]   # one vertex of the right side pushed left
+    at = boundary_crossings(uv, be)
+    assert len(at) > 0 and np.all(np.abs(at - [4.6, 8.0]).max(axis=1) < 1.2)
+    moved = uv.copy()
+    _uncross(uv, uv0, be)
+    assert len(boundary_crossings(uv, be)) == 0
+    back = np.flatnonzero(np.any(uv != moved, axis=1))
+    assert 0 < len(back) < 12                              # only round the crossing, not the whole step
+    assert np.all(np.linalg.norm(uv0[back] - [4.6, 8.0], axis=1) < 2.1)
+    assert np.array_equal(uv[back], uv0[back])
+
+
 def test_untangle_fixes_a_fold():
     nu = nv = 8
     U, V = np.meshgrid(np.arange(nu, dtype=float), np.arange(nv, dtype=float), indexing="ij")
