@@ -141,7 +141,7 @@ def test_boundary_self_intersection():
 
 
 def test_a_crossing_the_global_strain_step_made_is_undone_where_it_is():
-    from StomachUnfoldLib.methods.isometric import _uncross, boundary_crossings
+    from StomachUnfoldLib.methods.isometric import undo_crossings, boundary_crossings
 
     # a grid whose outline has a slit: two boundary stretches 0.05 apart; the "global step" moved the whole map
     # a little and pushed one side of the slit over the other; only the vertices near the crossing go back
@@ -164,16 +164,16 @@ def test_a_crossing_the_global_strain_step_made_is_undone_where_it_is():
                 a, d = dup[a], dup[d]
             f += [[a, b, c], [a, c, d]]
     f = np.array(f)
-    from StomachUnfoldLib.methods.isometric import _boundary_edges
-
-    be = _boundary_edges(f)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    ue, cnt = np.unique(e, axis=0, return_counts=True)
+    be = ue[cnt == 1]                                      # the outline's edges
     assert len(boundary_crossings(uv0, be)) == 0
     uv = uv0 * 1.01                                        # the whole map moved (up to 0.14)
     uv[n * n + np.flatnonzero(uv0[n * n:, 1] == 8)] -= [0.6, 0.0]   # one vertex of the right side pushed left
     at = boundary_crossings(uv, be)
     assert len(at) > 0 and np.all(np.abs(at - [4.6, 8.0]).max(axis=1) < 1.2)
     moved = uv.copy()
-    _uncross(uv, uv0, be)
+    undo_crossings(uv, uv0, be)
     assert len(boundary_crossings(uv, be)) == 0
     back = np.flatnonzero(np.any(uv != moved, axis=1))
     assert 0 < len(back) < 12                              # only round the crossing, not the whole step

@@ -103,7 +103,7 @@ STRETCH_SOLVES = 100
 #: triangles over on real CT 02 (the slab), so the step was undone there and 253 triangles stayed over 1.5x
 STRETCH_SHRINK_MIN = 0.05
 #: ... and where the global step makes the map's outline cross itself, the vertices within these distances (mm) of
-#: the crossing go back to where they were, the nearest first (:func:`_uncross`), rather than the whole step
+#: the crossing go back to where they were, the nearest first (:func:`undo_crossings`), rather than the whole step
 STRETCH_UNCROSS_MM = (1.0, 2.0, 4.0)
 #: a triangle of the lumen's iso-surface whose three corners all lie more than that many voxels beyond the CT's first
 #: or last voxel centres is part of the cap that closes a lumen cut off by the scan: the field is padded past the
@@ -699,7 +699,7 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     move that would flip a triangle is undone. Where a whole band is stretched close to the limit, the stretch is
     pushed along it and some triangles stay over, so a global step comes first: up to STRETCH_SOLVES rounds of
     clamping every triangle over and solving for the whole map at once (one factorisation), undone if it flips a
-    triangle, and only round the crossing where it makes the outline cross itself (:func:`_uncross`); the sweeps
+    triangle, and only round the crossing where it makes the outline cross itself (:func:`undo_crossings`); the sweeps
     then finish what it leaves. After it, every STRETCH_CHECK_EVERY sweeps and at the end, the
     map is kept if it has fewer triangles over the limit than the best so far, no boundary crossing itself that the
     input did not have, and no more edges (springs) longer than ``limit`` times their rest length; the input if none
@@ -757,7 +757,7 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     o = float(np.sign(np.sum(sign0)) or 1.0)                        # the map's orientation (it may be mirrored)
     out[:], solves = _global_strain_limit(fg, xg, Ainv, out, goal, aim, solves, o)
     if solves and not crossed0:
-        _uncross(out, uv0, bedges)
+        undo_crossings(out, uv0, bedges)
     sign1 = np.sign(signed_area_2d(out, fg))
     if solves and not np.any((sign1 != sign0) & (sign0 == o)):      # none turned over (one turned back is fine)
         s1 = jacobians(np.arange(len(fg)))[1]
@@ -803,7 +803,7 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
                  "stretch_solves": solves, "stretch_move_mm": moved}
 
 
-def _uncross(uv: np.ndarray, uv0: np.ndarray, bedges: np.ndarray) -> None:
+def undo_crossings(uv: np.ndarray, uv0: np.ndarray, bedges: np.ndarray) -> None:
     """Where the global strain step made the map's outline cross itself, move the vertices within STRETCH_UNCROSS_MM
     (mm, the input map's, growing until the outline is clear) back to the input map ``uv0``; in place.
 
