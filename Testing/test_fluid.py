@@ -23,10 +23,11 @@ GEOMETRIES = {
 }
 
 
-def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0):
+def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, bead=None):
     """(Volume in HU, true fluid mask, true lumen mask) of the synthetic stomach; contents below the level:
     'water' (10 HU), 'gas' (none: all air), 'tissue' (50 HU: a flat air boundary on solid tissue), 'leak'
-    (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm)."""
+    (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm); ``bead``: (LPS centre
+    mm, radius mm) of a 2500 HU bead, painted over the rest (it is in neither true mask)."""
     sp, D = GEOMETRIES[geometry]
     sp = np.asarray(sp, float)
     lps_axis = np.argmax(np.abs(D), axis=0)                 # LPS axis of each of i, j, k
@@ -54,6 +55,11 @@ def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0):
     elif contents == "tissue":
         hu[below] = 50.0
         lumen = lumen & ~below
+    if bead is not None:
+        in_bead = np.linalg.norm(P - np.asarray(bead[0], float), axis=1) < bead[1]
+        hu[in_bead] = 2500.0
+        lumen = lumen & ~in_bead
+        fluid = fluid & ~in_bead
     arr = hu.reshape(size[::-1])
     arr = ndimage.gaussian_filter(arr, 0.7) + np.random.default_rng(seed).normal(0.0, 25.0, arr.shape)
     shape = tuple(size[::-1])
@@ -133,3 +139,47 @@ def test_a_thin_wall_between_water_and_fat_is_not_taken_as_water(geometry):
     fluid = lumen & ~air
     assert np.count_nonzero(fluid & ~lumen_true) < 0.15 * np.count_nonzero(fluid)
     assert np.count_nonzero(fluid_true & ~fluid) < 0.02 * np.count_nonzero(fluid_true)
+
+
+def test_a_ray_through_a_thin_wall_ends_before_it_and_a_resolved_wall_keeps_its_end():
+    from StomachUnfoldLib.preprocessing import _wall_edge
+
+    n_partial = 2
+    water = np.full(20, 10.0)
+    thin = water.copy()
+    thin[12:16] = [15.0, 22.0, 22.0, 15.0]       # a wall blurred to 22 HU between the water and the fat
+    thin[16:] = -90.0
+    resolved = water.copy()
+    resolved[12:] = [18.0, 30.0, 40.0, 45.0, 45.0, 45.0, 45.0, 45.0]
+    bead = water.copy()
+    bead[12:18] = [40.0, 300.0, 1400.0, 1400.0, 300.0, 40.0]
+    prof = np.stack([thin, resolved, bead, water])
+    run = np.array([17, 13, 12, 20 - 1])          # where the water range stopped each ray (voxels of water)
+    edge = _wall_edge(prof, run, n_partial, max_hu=25.0)
+    assert edge[0] == 13                          # half-way (16 HU) from the water to the wall's 22: before it
+    assert edge[1] == 13                          # a rise above the water range: the end stays
+    assert edge[2] == 12                          # a bead ahead: never longer than where the ray stopped
+    assert edge[3] == run[3]                      # no wall ahead within the window: unchanged
+
+
+def test_the_tail_of_a_dense_objects_blur_beside_the_water_joins_it():
+    from StomachUnfoldLib.preprocessing import _dense_edges
+
+    # water (10 HU) above a flat floor at y = 20; a dense bead (2500 HU, radius 2 voxels) on the floor; blurred, the
+    # bead's tail stays above the water range (25 HU) round it, and the water mask stopped there: a notch of "wall"
+    z, y, x = np.mgrid[0:24, 0:30, 0:24].astype(float)
+    hu = np.where(y < 20, 10.0, 40.0)
+    d = np.sqrt((z - 12) ** 2 + (y - 19) ** 2 + (x - 12) ** 2)
+    hu[d <= 2.0] = 2500.0
+    sm = ndimage.gaussian_filter(hu, 0.8).astype(np.float32)
+    water = (y < 20) & (sm <= 25.0) & (y > 2)
+    air = y <= 2
+    out = _dense_edges(water, air, sm, max_hu=25.0)
+    ring = (y < 20) & (d > 2.5) & (d < 4.0)                     # the water within 2 voxels of the bead
+    before, after = np.count_nonzero(water & ring), np.count_nonzero(out & ring)
+    assert after >= before + 15                                 # the notch partly filled (24 -> 44 of 97 voxels)
+    assert np.all(sm[out & ~water] <= 0.5 * (10.0 + 2500.0))    # only the tail, up to half-way to the bead
+    assert not np.any(out & (d < 1.5))                          # never the bead itself
+    assert not np.any(out & (y >= 20))                          # nor the wall below the floor
+    assert np.array_equal(out & (d > 7), water & (d > 7))       # nothing away from it
+    assert np.array_equal(_dense_edges(water, air, np.minimum(sm, 150.0), 25.0), water)   # no dense object: as is
