@@ -484,10 +484,9 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     that wall's peak (:func:`_wall_edge`). The fluid's depth below each level voxel is the 5 x 5 median of the rays'
     depths (a ray stopped by a noise voxel would leave a pillar of "wall" inside the lumen, one through a thin wall
     a spike), less voxels over ``max_hu`` + 50 HU (a bead or calcification on the floor stays), less the last
-    voxel where the water still ends
-    in a fall to fat (a wall too thin to show a peak, :func:`_falling_floor`), plus the tail of a dense object's
-    blur beside the water up to half-way to its peak (:func:`_dense_edges`: a marker bead, a clip, contrast), so the
-    object does not sit on a mound.
+    voxel where the water still ends in a fall to fat (a wall too thin to show a peak, :func:`_falling_floor`),
+    plus the tail of a dense object's blur beside the water up to half-way to its peak (:func:`_dense_edges`: a
+    marker bead, a clip, contrast), so the mound it sits on under water is smaller.
     Fluid is kept only if at least half of the level has two or more water voxels under it (each ray clipped to two
     voxels beyond that median; an air boundary lying flat on tissue has none), and refused with a warning if
     it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
