@@ -398,18 +398,18 @@ def _falling_floor(depth: np.ndarray, prof: np.ndarray, n_partial: int, rel2: np
     return (major & (depth > n_partial)).astype(depth.dtype)
 
 
-#: How far back (voxels) from a ray's end the wall's peak is looked for (:func:`_wall_edge`), and the least rise
+#: How far back (voxels) from a ray's end the wall's peak is looked for (:func:`thin_wall_edge`), and the least rise
 #: (HU) above the water that counts as a wall there
 WALL_BACK_VOX = 6
 WALL_MIN_RISE_HU = 8.0
 #: Smoothed HU above which an object in the water is dense (oral contrast, a calcification, a clip, the phantoms'
 #: marker beads; no wall or soft tissue reaches it), and how far (voxels) round it the tail of its blur is looked for
-#: (:func:`_dense_edges`)
+#: (:func:`dense_object_edges`)
 DENSE_HU = 200.0
 DENSE_REACH_VOX = 3
 
 
-def _wall_edge(prof: np.ndarray, run: np.ndarray, n_partial: int, max_hu: float) -> np.ndarray:
+def thin_wall_edge(prof: np.ndarray, run: np.ndarray, n_partial: int, max_hu: float) -> np.ndarray:
     """Each ray's water (voxels of its HU profile ``prof`` behind the level) ending before a thin wall it ran through.
 
     A ray stops where its profile leaves the water range (``run`` voxels of water). A ray that stopped on a rise
@@ -438,7 +438,7 @@ def _wall_edge(prof: np.ndarray, run: np.ndarray, n_partial: int, max_hu: float)
     return np.where(has, np.minimum(run, idx[rows, last] + 1), run)
 
 
-def _dense_edges(fluid: np.ndarray, air: np.ndarray, sm: np.ndarray, max_hu: float) -> np.ndarray:
+def dense_object_edges(fluid: np.ndarray, air: np.ndarray, sm: np.ndarray, max_hu: float) -> np.ndarray:
     """The water (bool, on the rays' box) joined by the tail of a dense object's blur beside it, up to the
     object's half-contrast edge (``sm``: the box's lightly smoothed HU).
 
@@ -481,11 +481,11 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     water) and goes on while the HU stays in the water range [``FLUID_MIN_HU``, ``max_hu``] (HU; the wall is
     about 40 HU, fat about -90 HU), stopping at the first voxel above ``max_hu``, at two in a row below the
     range or after ``max_depth_mm``; a ray that ran on through a wall too thin to resolve then ends half-way up to
-    that wall's peak (:func:`_wall_edge`). The fluid's depth below each level voxel is the 5 x 5 median of the rays'
+    that wall's peak (:func:`thin_wall_edge`). The fluid's depth below each level voxel is the 5 x 5 median of the rays'
     depths (a ray stopped by a noise voxel would leave a pillar of "wall" inside the lumen, one through a thin wall
     a spike), less voxels over ``max_hu`` + 50 HU (a bead or calcification on the floor stays), less the last
     voxel where the water still ends in a fall to fat (a wall too thin to show a peak, :func:`_falling_floor`),
-    plus the tail of a dense object's blur beside the water up to half-way to its peak (:func:`_dense_edges`: a
+    plus the tail of a dense object's blur beside the water up to half-way to its peak (:func:`dense_object_edges`: a
     marker bead, a clip, contrast), so the mound it sits on under water is smaller.
     Fluid is kept only if at least half of the level has two or more water voxels under it (each ray clipped to two
     voxels beyond that median; an air boundary lying flat on tissue has none), and refused with a warning if
@@ -547,7 +547,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     stop = (bad & np.concatenate([bad[:, 1:], np.ones((len(bad), 1), bool)], 1)) | (prof > max_hu) | ~inside
     stop[:, -1] = True
     run = np.argmax(stop, axis=1)  # voxels of fluid behind each level voxel
-    run = _wall_edge(prof, run, n_partial, max_hu)
+    run = thin_wall_edge(prof, run, n_partial, max_hu)
     grid = tuple(hu.shape[a] for a in range(3) if a != ax)
     med = _level_median(run.astype(np.int64), rel2, grid, "constant")
     take = offs[None, :] <= np.minimum(run, med + 2)[:, None]
@@ -566,7 +566,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     fluid = np.zeros(shape, bool)
     fluid[tuple(vox.T)] = True
     fluid &= ~air
-    fluid[rbox] = _dense_edges(fluid[rbox], air[rbox], sm, max_hu)
+    fluid[rbox] = dense_object_edges(fluid[rbox], air[rbox], sm, max_hu)
     del sm
     n = int(np.count_nonzero(fluid))
     info["fluid_level_lps_y"] = level_y

@@ -142,7 +142,7 @@ def test_a_thin_wall_between_water_and_fat_is_not_taken_as_water(geometry):
 
 
 def test_a_ray_through_a_thin_wall_ends_before_it_and_a_resolved_wall_keeps_its_end():
-    from StomachUnfoldLib.preprocessing import _wall_edge
+    from StomachUnfoldLib.preprocessing import thin_wall_edge
 
     n_partial = 2
     water = np.full(20, 10.0)
@@ -155,7 +155,7 @@ def test_a_ray_through_a_thin_wall_ends_before_it_and_a_resolved_wall_keeps_its_
     bead[12:18] = [40.0, 300.0, 1400.0, 1400.0, 300.0, 40.0]
     prof = np.stack([thin, resolved, bead, water])
     run = np.array([17, 13, 12, 20 - 1])          # where the water range stopped each ray (voxels of water)
-    edge = _wall_edge(prof, run, n_partial, max_hu=25.0)
+    edge = thin_wall_edge(prof, run, n_partial, max_hu=25.0)
     assert edge[0] == 13                          # half-way (16 HU) from the water to the wall's 22: before it
     assert edge[1] == 13                          # a rise above the water range: the end stays
     assert edge[2] == 12                          # a bead ahead: never longer than where the ray stopped
@@ -163,7 +163,7 @@ def test_a_ray_through_a_thin_wall_ends_before_it_and_a_resolved_wall_keeps_its_
 
 
 def test_the_tail_of_a_dense_objects_blur_beside_the_water_joins_it():
-    from StomachUnfoldLib.preprocessing import _dense_edges
+    from StomachUnfoldLib.preprocessing import dense_object_edges
 
     # water (10 HU) above a flat floor at y = 20; a dense bead (2500 HU, radius 2 voxels) on the floor; blurred, the
     # bead's tail stays above the water range (25 HU) round it, and the water mask stopped there: a notch of "wall"
@@ -174,7 +174,7 @@ def test_the_tail_of_a_dense_objects_blur_beside_the_water_joins_it():
     sm = ndimage.gaussian_filter(hu, 0.8).astype(np.float32)
     water = (y < 20) & (sm <= 25.0) & (y > 2)
     air = y <= 2
-    out = _dense_edges(water, air, sm, max_hu=25.0)
+    out = dense_object_edges(water, air, sm, max_hu=25.0)
     ring = (y < 20) & (d > 2.5) & (d < 4.0)                     # the water within 2 voxels of the bead
     before, after = np.count_nonzero(water & ring), np.count_nonzero(out & ring)
     assert after >= before + 15                                 # the notch partly filled (24 -> 44 of 97 voxels)
@@ -182,4 +182,4 @@ def test_the_tail_of_a_dense_objects_blur_beside_the_water_joins_it():
     assert not np.any(out & (d < 1.5))                          # never the bead itself
     assert not np.any(out & (y >= 20))                          # nor the wall below the floor
     assert np.array_equal(out & (d > 7), water & (d > 7))       # nothing away from it
-    assert np.array_equal(_dense_edges(water, air, np.minimum(sm, 150.0), 25.0), water)   # no dense object: as is
+    assert np.array_equal(dense_object_edges(water, air, np.minimum(sm, 150.0), 25.0), water)   # no dense object: as is
