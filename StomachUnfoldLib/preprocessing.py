@@ -418,8 +418,8 @@ def thin_wall_edge(prof: np.ndarray, run: np.ndarray, n_partial: int, max_hu: fl
     to 15-25 HU between the water and the fat, so the ray ran on through it: its water now ends where the profile
     has risen half-way from the water's HU (the median of the rays' middles) to the largest value from
     WALL_BACK_VOX voxels before its end to two after it, that wall's middle (tuning seeds: the floor was one voxel
-    too deep in the median column). So does a ray whose peak there is a dense object's (over ``max_hu`` + 50 HU).
-    A peak less than WALL_MIN_RISE_HU above the water changes nothing; no ray gets longer. Returns the runs.
+    too deep in the median column). A peak less than WALL_MIN_RISE_HU above the water changes nothing; no ray gets
+    longer. Returns the runs.
     """
     n, m = prof.shape
     rows = np.arange(n)
@@ -433,7 +433,7 @@ def thin_wall_edge(prof: np.ndarray, run: np.ndarray, n_partial: int, max_hu: fl
     half = 0.5 * (f0 + peak)
     below = valid & (win <= half[:, None]) & (np.arange(win.shape[1])[None, :] < pk[:, None])
     rose = prof[rows, np.minimum(run, m - 1)] > max_hu
-    has = below.any(axis=1) & (peak - f0 >= WALL_MIN_RISE_HU) & (~rose | (peak > max_hu + 50.0))
+    has = below.any(axis=1) & (peak - f0 >= WALL_MIN_RISE_HU) & ~rose
     last = win.shape[1] - 1 - np.argmax(below[:, ::-1], axis=1)
     return np.where(has, np.minimum(run, idx[rows, last] + 1), run)
 
@@ -444,9 +444,10 @@ def dense_object_edges(fluid: np.ndarray, air: np.ndarray, sm: np.ndarray, max_h
 
     Under water the lumen's edge is the water range's top, and a dense object's blur (a marker bead, 2500 HU) stays
     above it over one to two voxels round the object, so the object sat on a mound of "wall" it does not have in air
-    (where -500 HU is 14 % of its contrast above the air, not under 1 %). Voxels within DENSE_REACH_VOX of an object over DENSE_HU that
-    a closing of the water by a ball of that radius fills (a notch of the water round the object, not the wall below
-    a flat floor) join the water where their HU is at most half-way from the water's to the object's local peak.
+    (where -500 HU is 14 % of its contrast above the air, not under 1 %). Voxels within DENSE_REACH_VOX of an object
+    over DENSE_HU that a closing of the water by a ball of that radius fills (a notch of the water round the object,
+    not the wall below a flat floor) join the water where their HU is at most half-way from the water's to the
+    object's local peak.
     """
     core = sm > DENSE_HU
     if not core.any() or not fluid.any():
@@ -481,9 +482,9 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     water) and goes on while the HU stays in the water range [``FLUID_MIN_HU``, ``max_hu``] (HU; the wall is
     about 40 HU, fat about -90 HU), stopping at the first voxel above ``max_hu``, at two in a row below the
     range or after ``max_depth_mm``; a ray that ran on through a wall too thin to resolve then ends half-way up to
-    that wall's peak (:func:`thin_wall_edge`). The fluid's depth below each level voxel is the 5 x 5 median of the rays'
-    depths (a ray stopped by a noise voxel would leave a pillar of "wall" inside the lumen, one through a thin wall
-    a spike), less voxels over ``max_hu`` + 50 HU (a bead or calcification on the floor stays), less the last
+    that wall's peak (:func:`thin_wall_edge`). The fluid's depth below each level voxel is the 5 x 5 median of the
+    rays' depths (a ray stopped by a noise voxel would leave a pillar of "wall" inside the lumen, one through a thin
+    wall a spike), less voxels over ``max_hu`` + 50 HU (a bead or calcification on the floor stays), less the last
     voxel where the water still ends in a fall to fat (a wall too thin to show a peak, :func:`_falling_floor`),
     plus the tail of a dense object's blur beside the water up to half-way to its peak (:func:`dense_object_edges`: a
     marker bead, a clip, contrast), so the mound it sits on under water is smaller.

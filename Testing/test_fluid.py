@@ -23,11 +23,10 @@ GEOMETRIES = {
 }
 
 
-def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, bead=None):
+def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0):
     """(Volume in HU, true fluid mask, true lumen mask) of the synthetic stomach; contents below the level:
     'water' (10 HU), 'gas' (none: all air), 'tissue' (50 HU: a flat air boundary on solid tissue), 'leak'
-    (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm); ``bead``: (LPS centre
-    mm, radius mm) of a 2500 HU bead, painted over the rest (it is in neither true mask)."""
+    (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm)."""
     sp, D = GEOMETRIES[geometry]
     sp = np.asarray(sp, float)
     lps_axis = np.argmax(np.abs(D), axis=0)                 # LPS axis of each of i, j, k
@@ -55,11 +54,6 @@ def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, bead=Non
     elif contents == "tissue":
         hu[below] = 50.0
         lumen = lumen & ~below
-    if bead is not None:
-        in_bead = np.linalg.norm(P - np.asarray(bead[0], float), axis=1) < bead[1]
-        hu[in_bead] = 2500.0
-        lumen = lumen & ~in_bead
-        fluid = fluid & ~in_bead
     arr = hu.reshape(size[::-1])
     arr = ndimage.gaussian_filter(arr, 0.7) + np.random.default_rng(seed).normal(0.0, 25.0, arr.shape)
     shape = tuple(size[::-1])
