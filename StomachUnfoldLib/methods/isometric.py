@@ -807,11 +807,11 @@ def undo_crossings(uv: np.ndarray, uv0: np.ndarray, bedges: np.ndarray) -> None:
     """Where the global strain step made the map's outline cross itself, move the vertices within STRETCH_UNCROSS_MM
     (mm, the input map's, growing until the outline is clear) back to the input map ``uv0``; in place.
 
-    The crossing is where two stretches of the outline nearly touched in the input. Seen on tuning seed 354 with a
-    trial water floor (not kept): a move of 0.17 mm crossed them, the whole step was undone and the sweeps alone
-    left 44 triangles over the limit; undoing the 4 vertices within 1 mm left 3, for the sweeps to relieve. No
-    committed bench row has such a crossing (the one whose global step was not kept, 1026 from zero clicks, is
-    the same with this).
+    The crossing is where two stretches of the outline nearly touched in the input. Seen on tuning seed 354 with the
+    water's floor of 2026-12-05 (``preprocessing.thin_wall_edge``, ``dense_object_edges``): a move of 0.17 mm
+    crossed them, the whole step was undone and the sweeps alone left 44 triangles over the limit; undoing the 4
+    vertices within 1 mm left 3, for the sweeps to relieve. Before that floor no bench row had such a crossing (the
+    one whose global step was not kept, 1026 from zero clicks, is the same with this).
     """
     from scipy.spatial import cKDTree
 
