@@ -143,10 +143,11 @@ def test_family_cases_tune_and_held_out_seeds_every_method_on_each():
     cases = bench.family_cases(quick=False, data_dir=None, cache_dir="/nonexistent")
     groups = {c["group"] for c in cases}
     assert groups == {"stomachs-tune", "stomachs-held-out", "stomachs-fresh", "stomachs-fresh-2", "stomachs-fresh-3",
-                      "stomachs-fresh-4", "stomachs-fresh-5"}
+                      "stomachs-fresh-4", "stomachs-fresh-5", "stomachs-fresh-6", "stomachs-fresh-7"}
     seeds = {c["source"]["random"] for c in cases}
     sets = (set(bench.TUNE_SEEDS), set(bench.HELD_OUT_SEEDS), set(bench.FRESH_SEEDS), set(bench.FRESH2_SEEDS),
-            set(bench.FRESH3_SEEDS), set(bench.FRESH4_SEEDS), set(bench.FRESH5_SEEDS))
+            set(bench.FRESH3_SEEDS), set(bench.FRESH4_SEEDS), set(bench.FRESH5_SEEDS), set(bench.FRESH6_SEEDS),
+            set(bench.FRESH7_SEEDS))
     assert seeds == set().union(*sets)
     assert all(not a & b for i, a in enumerate(sets) for b in sets[i + 1:])  # no seed in two sets
     for seed in seeds:
@@ -325,7 +326,8 @@ def test_hybrid_seeds_do_not_depend_on_the_other_sets(tmp_path):
     assert [(c["name"], c["source"]["hybrid"]) for c in alone] == [(c["name"], c["source"]["hybrid"]) for c in hybrids]
 
 
-@pytest.mark.parametrize("part,seeds", [("fresh-4", "FRESH4_SEEDS"), ("fresh-5", "FRESH5_SEEDS")])
+@pytest.mark.parametrize("part,seeds", [("fresh-4", "FRESH4_SEEDS"), ("fresh-5", "FRESH5_SEEDS"),
+                                        ("fresh-6", "FRESH6_SEEDS"), ("fresh-7", "FRESH7_SEEDS")])
 def test_a_fresh_part_runs_that_set_alone_with_every_method(part, seeds):
     alone = bench._cases(False, False, None, [part])
     assert {c["group"] for c in alone} == {f"stomachs-{part}"}
