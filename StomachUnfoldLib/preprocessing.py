@@ -453,8 +453,9 @@ def dense_object_edges(fluid: np.ndarray, air: np.ndarray, sm: np.ndarray, max_h
     if not core.any() or not fluid.any():
         return fluid
     r = DENSE_REACH_VOX
-    lo = np.maximum(np.argwhere(core).min(0) - 2 * r - 1, 0)
-    hi = np.minimum(np.argwhere(core).max(0) + 2 * r + 2, fluid.shape)
+    at = np.argwhere(core)
+    lo = np.maximum(at.min(0) - 2 * r - 1, 0)
+    hi = np.minimum(at.max(0) + 2 * r + 2, fluid.shape)
     box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
     fb, smb = fluid[box], sm[box]
     zz, yy, xx = np.mgrid[-r:r + 1, -r:r + 1, -r:r + 1]
