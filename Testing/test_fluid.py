@@ -23,10 +23,11 @@ GEOMETRIES = {
 }
 
 
-def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0):
+def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, level_y=LEVEL_Y):
     """(Volume in HU, true fluid mask, true lumen mask) of the synthetic stomach; contents below the level:
     'water' (10 HU), 'gas' (none: all air), 'tissue' (50 HU: a flat air boundary on solid tissue), 'leak'
-    (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm)."""
+    (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm); ``level_y``: LPS y of
+    the level (mm; the lumen reaches y = 22 mm)."""
     sp, D = GEOMETRIES[geometry]
     sp = np.asarray(sp, float)
     lps_axis = np.argmax(np.abs(D), axis=0)                 # LPS axis of each of i, j, k
@@ -39,7 +40,7 @@ def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0):
     r_in = np.sqrt((x / 42.0) ** 2 + (y / 22.0) ** 2 + (z / 20.0) ** 2)
     r_out = np.sqrt((x / (42.0 + wall_mm)) ** 2 + (y / (22.0 + wall_mm)) ** 2 + (z / (20.0 + wall_mm)) ** 2)
     lumen = r_in < 1.0
-    below = lumen & (y > LEVEL_Y)
+    below = lumen & (y > level_y)
     hu = np.full(len(P), -90.0, np.float32)                   # fat
     hu[r_out < 1.0] = 50.0                                    # wall
     hu[lumen] = -1000.0
@@ -48,7 +49,7 @@ def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0):
         hu[below] = 10.0
         fluid = below
     if contents == "leak":                                    # a water-filled channel to the posterior side
-        ch = (np.hypot(x, z) < 9.0) & (y > LEVEL_Y)
+        ch = (np.hypot(x, z) < 9.0) & (y > level_y)
         hu[ch] = 10.0
         fluid = fluid | ch
     elif contents == "tissue":
@@ -81,6 +82,20 @@ def test_fluid_below_a_flat_level_joins_the_lumen(geometry):
     # the function alone gives the same fluid
     f2, i2 = fluid_below_level(ct, air)
     assert np.array_equal(f2, fluid) and i2["fluid_level_lps_y"] == info["fluid_level_lps_y"]
+
+
+def test_a_shallow_pool_joins_the_lumen(monkeypatch):
+    # a level 7 mm above the bowl's lowest point: under half of the level has the two water voxels beyond the
+    # partial-volume ones (the rim of the pool is shallower); at one half the water was refused whole
+    import StomachUnfoldLib.preprocessing as pre
+
+    ct, fluid_true, _ = make_ct("identity", level_y=15.0)
+    lumen, info = air_region(ct, CARDIA, PYLORUS)
+    air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    assert info["fluid_voxels"] > 0 and abs(info["fluid_level_lps_y"] - 15.0) <= 1.4
+    assert dice(lumen & ~air, fluid_true) > 0.7      # a 7 mm pool: its blurred floor and rim are a large share
+    monkeypatch.setattr(pre, "FLUID_MIN_WATER_FRACTION", 0.5)
+    assert air_region(ct, CARDIA, PYLORUS)[1]["fluid_voxels"] == 0
 
 
 def test_gas_only_stomach_is_unchanged():
