@@ -72,8 +72,13 @@ FRESH6_SEEDS = tuple(range(8000, 8030))
 #: An eighth held-out set, first drawn early on 2026-12-05 to decide on the same floor under rule 13 (kept); never tuned
 #: on. The bench part ``fresh-7`` runs it alone.
 FRESH7_SEEDS = tuple(range(9000, 9030))
+#: A ninth and a tenth held-out set, first drawn on 2026-12-05 (02:33-02:43) to decide on the stomach-plane incision
+#: again (rule 14, with a check for slots on the view's grid: failed, per volume 29 better / 31 worse); never tuned on.
+#: The bench parts ``fresh-8`` and ``fresh-9`` run them alone.
+FRESH8_SEEDS = tuple(range(10000, 10030))
+FRESH9_SEEDS = tuple(range(11000, 11030))
 #: The held-out sets a bench part of their own runs alone (each is also in ``stomachs``).
-FRESH_PARTS = ("fresh-4", "fresh-5", "fresh-6", "fresh-7")
+FRESH_PARTS = ("fresh-4", "fresh-5", "fresh-6", "fresh-7", "fresh-8", "fresh-9")
 #: The methods compared on every random stomach, on the same volumes in one run.
 FAMILY_METHODS = ("isometric", "massspring", "cylindrical", "lscm")
 #: Sizes of the isometric method's surface mesh (``isometric_vertices``; its default among them) run in one part
@@ -405,7 +410,9 @@ def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None
               ("stomachs-fresh-4", () if quick else FRESH4_SEEDS),
               ("stomachs-fresh-5", () if quick else FRESH5_SEEDS),
               ("stomachs-fresh-6", () if quick else FRESH6_SEEDS),
-              ("stomachs-fresh-7", () if quick else FRESH7_SEEDS)]
+              ("stomachs-fresh-7", () if quick else FRESH7_SEEDS),
+              ("stomachs-fresh-8", () if quick else FRESH8_SEEDS),
+              ("stomachs-fresh-9", () if quick else FRESH9_SEEDS)]
     cases = []
     for group, seeds in groups:
         for seed in seeds:
@@ -936,6 +943,10 @@ FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults we
                                       "2026-12-05 to decide on the water's floor, rule 12: failed as written)"),
                  ("stomachs-fresh-7", "Random stomachs, seeds 9000-9029 (an eighth held-out set, first drawn early on "
                                       "2026-12-05 to decide on the same floor, rule 13: kept)"),
+                 ("stomachs-fresh-8", "Random stomachs, seeds 10000-10029 (a ninth held-out set, first drawn on "
+                                      "2026-12-05 to decide on the stomach-plane incision again, rule 14: not kept)"),
+                 ("stomachs-fresh-9", "Random stomachs, seeds 11000-11029 (a tenth held-out set, drawn with the "
+                                      "ninth for rule 14)"),
                  ("stomachs-hybrid", "Drawn stomachs inserted into the real CTs (held out)"))
 
 

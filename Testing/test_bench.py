@@ -143,11 +143,12 @@ def test_family_cases_tune_and_held_out_seeds_every_method_on_each():
     cases = bench.family_cases(quick=False, data_dir=None, cache_dir="/nonexistent")
     groups = {c["group"] for c in cases}
     assert groups == {"stomachs-tune", "stomachs-held-out", "stomachs-fresh", "stomachs-fresh-2", "stomachs-fresh-3",
-                      "stomachs-fresh-4", "stomachs-fresh-5", "stomachs-fresh-6", "stomachs-fresh-7"}
+                      "stomachs-fresh-4", "stomachs-fresh-5", "stomachs-fresh-6", "stomachs-fresh-7",
+                      "stomachs-fresh-8", "stomachs-fresh-9"}
     seeds = {c["source"]["random"] for c in cases}
     sets = (set(bench.TUNE_SEEDS), set(bench.HELD_OUT_SEEDS), set(bench.FRESH_SEEDS), set(bench.FRESH2_SEEDS),
             set(bench.FRESH3_SEEDS), set(bench.FRESH4_SEEDS), set(bench.FRESH5_SEEDS), set(bench.FRESH6_SEEDS),
-            set(bench.FRESH7_SEEDS))
+            set(bench.FRESH7_SEEDS), set(bench.FRESH8_SEEDS), set(bench.FRESH9_SEEDS))
     assert seeds == set().union(*sets)
     assert all(not a & b for i, a in enumerate(sets) for b in sets[i + 1:])  # no seed in two sets
     for seed in seeds:
@@ -327,7 +328,8 @@ def test_hybrid_seeds_do_not_depend_on_the_other_sets(tmp_path):
 
 
 @pytest.mark.parametrize("part,seeds", [("fresh-4", "FRESH4_SEEDS"), ("fresh-5", "FRESH5_SEEDS"),
-                                        ("fresh-6", "FRESH6_SEEDS"), ("fresh-7", "FRESH7_SEEDS")])
+                                        ("fresh-6", "FRESH6_SEEDS"), ("fresh-7", "FRESH7_SEEDS"),
+                                        ("fresh-8", "FRESH8_SEEDS"), ("fresh-9", "FRESH9_SEEDS")])
 def test_a_fresh_part_runs_that_set_alone_with_every_method(part, seeds):
     alone = bench._cases(False, False, None, [part])
     assert {c["group"] for c in alone} == {f"stomachs-{part}"}
