@@ -497,8 +497,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     marker bead, a clip, contrast), so the mound it sits on under water is smaller.
     Fluid is kept only if at least ``FLUID_MIN_WATER_FRACTION`` of the level has two or more water voxels under it
     (each ray clipped to two voxels beyond that median; an air boundary lying flat on tissue has none), and refused
-    with a warning if
-    it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
+    with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
 
     Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
     of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level),
