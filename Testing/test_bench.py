@@ -331,6 +331,9 @@ def test_hybrid_seeds_do_not_depend_on_the_other_sets(tmp_path):
                                         ("fresh-6", "FRESH6_SEEDS"), ("fresh-7", "FRESH7_SEEDS"),
                                         ("fresh-8", "FRESH8_SEEDS"), ("fresh-9", "FRESH9_SEEDS")])
 def test_a_fresh_part_runs_that_set_alone_with_every_method(part, seeds):
+    from StomachUnfoldLib.cli import BENCH_PARTS
+
+    assert part in bench.FRESH_PARTS and part in BENCH_PARTS       # the command line knows the part the bench runs
     alone = bench._cases(False, False, None, [part])
     assert {c["group"] for c in alone} == {f"stomachs-{part}"}
     assert {c["source"]["random"] for c in alone} == set(getattr(bench, seeds))
