@@ -84,6 +84,8 @@ FAMILY_METHODS = ("isometric", "massspring", "cylindrical", "lscm")
 #: Sizes of the isometric method's surface mesh (``isometric_vertices``; its default among them) run in one part
 #: (``meshsize``) on the tuning and held-out random stomachs: its speed against its accuracy, in the same hour.
 MESH_SIZES = (8000, 12000, 20000)
+#: Points of the mucosa laid out with the markers by the ``surfacebound`` part (flat_bound.surface_layout_reference).
+SURFACE_EXTRA_POINTS = 150
 
 
 def _cached(source: dict, cache_dir: str | None):
@@ -169,6 +171,8 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
 
     from .markers import family_marker_metrics, marker_metrics
 
+    if case["method"] == SURFACE_LAYOUT:
+        return surface_layout_row(case)
     row = {k: case[k] for k in ("name", "method", "group", "params")}
     row["source"] = {k: v for k, v in case["source"].items() if not k.startswith("_")}
     try:
@@ -330,6 +334,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += zero_click_cases(quick)
     if "meshsize" in parts:
         cases += mesh_size_cases(quick)
+    if "surfacebound" in parts:
+        cases += surface_bound_cases(quick)
     return cases
 
 
@@ -384,6 +390,109 @@ def mesh_size_markdown(rows: list[dict]) -> list[str]:
         L.append(f"| {x['set']} | {x['vertices']}{' (default)' if x['default'] else ''} | {x['volumes']} | "
                  f"{x['seconds_median']:.1f} | {x['ratio_median']:.2f} | {x['within_1p5']} | "
                  f"{100 * x['visible_median']:.2f} | {x['markers_seen']}/{x['markers_total']} | {x['excellent']} |")
+    return L + [""]
+
+
+#: The ``method`` of the ``surfacebound`` part's rows: no method runs, the references are computed.
+SURFACE_LAYOUT = "surface-layout"
+
+
+def surface_bound_cases(quick: bool) -> list[dict]:
+    """The tuning and held-out random stomachs' references: the markers' flat-layout bound against the best layout of
+    the whole mucosa (see :func:`surface_layout_row`)."""
+    seeds = (TUNE_SEEDS[:1] + HELD_OUT_SEEDS[:1]) if quick else (TUNE_SEEDS + HELD_OUT_SEEDS)
+    n = 20 if quick else SURFACE_EXTRA_POINTS
+    return [Case(f"stomach-{seed}/{SURFACE_LAYOUT}", {"random": int(seed), "size": "small"}, {"n_extra": n},
+                 method=SURFACE_LAYOUT, group="surface-bound") for seed in seeds]
+
+
+def surface_layout_row(case: dict) -> dict:
+    """A ``surfacebound`` row: on one random stomach, the markers' flat-layout bound (as the family rows have it) and
+    fitted robustly, and the best layout of the whole mucosa (its markers and ``n_extra`` other points, true cut
+    geodesics), plain and robust, scored on the markers (median |log(d2/g)|, pairs 10-80 mm)."""
+    from .flat_bound import flat_layout_bound, surface_layout_reference
+    from .random_stomach import surface_reference_geodesics
+
+    row = {k: case[k] for k in ("name", "method", "group", "params")}
+    row["source"] = dict(case["source"])
+    try:
+        t = time.perf_counter()
+        src = case["source"]
+        geo = surface_reference_geodesics(int(src["random"]), src.get("size", "small"), case["params"]["n_extra"])
+        G, m = geo["geodesic_cut_mm"], geo["n_markers"]
+        whole = surface_layout_reference(G, m)
+        whole_r = surface_layout_reference(G, m, robust=True)
+        ref = {"n_markers": m, "n_points": whole["n_points"], "n_pairs": whole["n_pairs"],
+               "marker_bound": flat_layout_bound(G[:m, :m])["median_relative_error"],
+               "marker_bound_robust": flat_layout_bound(G[:m, :m], robust=True)["median_relative_error"],
+               "surface_layout": whole["median_relative_error"], "surface_layout_robust": whole_r["median_relative_error"],
+               "surface_all_pairs": whole["all_pairs_median"], "surface_all_pairs_robust": whole_r["all_pairs_median"]}
+        row.update(ok=True, seconds=time.perf_counter() - t, reference=ref)
+    except Exception as e:  # data, as in run_case
+        row.update(ok=False, error=f"{type(e).__name__}: {e}", traceback=traceback.format_exc(limit=3))
+    return row
+
+
+def surface_bound_summary(rows: list[dict]) -> list[dict]:
+    """Per seed set (tuning, held-out): the ``surfacebound`` references over the bound, and each family method's
+    marker distortion over the bound and over the whole mucosa's layout, on the volumes that have both."""
+    refs = {r["name"].split("/")[0]: r["reference"] for r in rows if r.get("group") == "surface-bound" and r.get("ok")}
+    out = []
+    for label, group, seeds in (("tuning", "stomachs-tune", TUNE_SEEDS), ("held-out", "stomachs-held-out",
+                                                                           HELD_OUT_SEEDS)):
+        mine = {f"stomach-{seed}": refs[f"stomach-{seed}"] for seed in seeds if f"stomach-{seed}" in refs}
+        if not mine:
+            continue
+        b = np.array([v["marker_bound"] for v in mine.values()])
+        rel = {k: np.array([v[k] for v in mine.values()]) / b
+               for k in ("marker_bound_robust", "surface_layout", "surface_layout_robust")}
+        entry = {"set": label, "volumes": len(mine), "bound_median": float(np.median(b)),
+                 "other_points": int(np.median([v["n_points"] - v["n_markers"] for v in mine.values()])),
+                 **{f"{k}_over_bound_median": float(np.median(x)) for k, x in rel.items()},
+                 **{f"{k}_over_bound_max": float(np.max(x)) for k, x in rel.items()},
+                 **{f"{k}_over_1p5": int(np.sum(x > 1.5)) for k, x in rel.items()}, "methods": {}}
+        for m in FAMILY_METHODS:
+            rs = [r for r in rows if r["group"] == group and r["method"] == m and r.get("ok")
+                  and not r.get("zero_clicks") and r["name"].split("/")[0] in mine
+                  and r["quality"].get("markers", {}).get("pairwise_distance_distortion") is not None]
+            if not rs:
+                continue
+            d = np.array([r["quality"]["markers"]["pairwise_distance_distortion"] for r in rs])
+            ref = [mine[r["name"].split("/")[0]] for r in rs]
+            xb = d / np.array([v["marker_bound"] for v in ref])
+            xs = d / np.array([v["surface_layout"] for v in ref])
+            entry["methods"][m] = {"volumes": len(rs), "over_bound_median": float(np.median(xb)),
+                                   "within_1p5_of_bound": int(np.sum(xb <= 1.5)),
+                                   "over_surface_median": float(np.median(xs)),
+                                   "within_1p5_of_surface": int(np.sum(xs <= 1.5))}
+        out.append(entry)
+    return out
+
+
+def surface_bound_markdown(rows: list[dict]) -> list[str]:
+    """results.md's section of :func:`surface_bound_summary` (nothing when the part was not run)."""
+    summ = surface_bound_summary(rows)
+    if not summ:
+        return []
+    L = ["## The flat-layout bound against the best flat layout of the whole mucosa (random stomachs)\n",
+         "Each layout scored on the markers' pairs (median |log(view / true geodesic)|, 10-80 mm), over the markers' "
+         "flat-layout bound (the family tables' bound). Robust: polished for the absolute log errors, which the median "
+         f"rewards. Whole mucosa: the markers laid out among {summ[0]['other_points']} other points of it, every pair "
+         "fitted, so the layout does not know which points are markers.\n",
+         "| set | volumes | bound median | markers fitted robustly / bound: median (max) | whole mucosa / bound: "
+         "median (max), over 1.5x | whole mucosa, robust / bound: median (max), over 1.5x |", "|---|---|---|---|---|---|"]
+    for x in summ:
+        L.append(f"| {x['set']} | {x['volumes']} | {x['bound_median']:.4f} | "
+                 f"{x['marker_bound_robust_over_bound_median']:.2f} ({x['marker_bound_robust_over_bound_max']:.2f}) | "
+                 f"{x['surface_layout_over_bound_median']:.2f} ({x['surface_layout_over_bound_max']:.2f}), "
+                 f"{x['surface_layout_over_1p5']} | {x['surface_layout_robust_over_bound_median']:.2f} "
+                 f"({x['surface_layout_robust_over_bound_max']:.2f}), {x['surface_layout_robust_over_1p5']} |")
+    L += ["", "| set | method | volumes | x bound: median, within 1.5x | x whole-mucosa layout: median, within 1.5x |",
+          "|---|---|---|---|---|"]
+    for x in summ:
+        for m, v in x["methods"].items():
+            L.append(f"| {x['set']} | {m} | {v['volumes']} | {v['over_bound_median']:.2f}, {v['within_1p5_of_bound']} | "
+                     f"{v['over_surface_median']:.2f}, {v['within_1p5_of_surface']} |")
     return L + [""]
 
 
@@ -921,6 +1030,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     table("peers", "Peers on the same phantoms (the inverted column: wall folded back along the unrolling)")
     L += family_markdown(rows)
     L += mesh_size_markdown(rows)
+    L += surface_bound_markdown(rows)
     L += memory_markdown(rows)
     for png in made:
         L.append(f"![{png}]({png})\n")

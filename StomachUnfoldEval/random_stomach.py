@@ -52,6 +52,7 @@ __all__ = [
     "random_stomach",
     "ring_graph",
     "surface_geodesics",
+    "surface_reference_geodesics",
     "write_random_stomach",
 ]
 
@@ -734,8 +735,9 @@ def _pick_markers(model: StomachModel, V, n, rng, fluid_y, sep=12.0):
     return np.array(chosen[:n], int)
 
 
-def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h=GEODESIC_GRID_MM):
-    """Fine lumen SDF grid, mucosa mesh, marker choice and both geodesic matrices; returns a dict."""
+def _fine_surface(model: StomachModel, h=GEODESIC_GRID_MM):
+    """The lumen's fine signed-distance grid (GridSDF, step about ``h`` mm), the mucosa mesh the geodesics run on
+    (V LPS mm, T) and the lumen volume (mL)."""
     o, hc, Cr, _ = model._coarse
     f = int(round(hc / h))
     h = hc / f
@@ -745,11 +747,15 @@ def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h
     kk, jj, ii = np.unravel_index(band, F.shape)
     P = o + h * np.stack([ii, jj, kk], 1)
     F.ravel()[band] = model.fields(P)["f_r"]
-    sdf = GridSDF(F, o, h)
+    lumen_ml = float(np.sum(F < 0) * h ** 3 / 1000.0)
     Vc, Tc = implicit_surface_mesh(Cr, o, hc)
-    ymin, ymax = Vc[:, 1].min(), Vc[:, 1].max()
-    fluid_y = None if fluid_fraction is None else float(ymax - fluid_fraction * (ymax - ymin))
-    sel = _pick_markers(model, Vc, n_markers, rng, fluid_y)
+    return GridSDF(F, o, h), Vc, Tc, lumen_ml
+
+
+def _cut_geodesics(model: StomachModel, Vc, Tc, sdf: GridSDF, sel):
+    """Geodesics (mm) among mesh vertices ``sel`` over the mucosa (geo) and round the cut along the greater curvature
+    (geo_cut: a path that crosses the band is found again outside it), the points on the surface (LPS mm) and the
+    paths."""
     ends = sdf.project(Vc[sel], steps=4)
     G = ring_graph(Vc, Tc, 2)
     geo, paths = surface_geodesics(Vc, Tc, sel, sdf, endpoints=ends, graph=G, return_paths=True)
@@ -766,14 +772,53 @@ def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h
                                 endpoints=ends, graph=G, pairs_only=redo)
     geo_cut = np.where(redo | redo.T, geo_cut, geo)
     geo = np.fmin(geo, geo_cut)            # a path that avoids the cut is a path on the closed surface too
+    return geo, geo_cut, ends, paths
+
+
+def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h=GEODESIC_GRID_MM):
+    """Fine lumen SDF grid, mucosa mesh, marker choice and both geodesic matrices; returns a dict."""
+    sdf, Vc, Tc, lumen_ml = _fine_surface(model, h)
+    ymin, ymax = Vc[:, 1].min(), Vc[:, 1].max()
+    fluid_y = None if fluid_fraction is None else float(ymax - fluid_fraction * (ymax - ymin))
+    sel = _pick_markers(model, Vc, n_markers, rng, fluid_y)
+    geo, geo_cut, ends, paths = _cut_geodesics(model, Vc, Tc, sdf, sel)
     off = [float(np.max(np.abs(model.fields(p)["f_r"]))) for p in paths.values()]
     area = float(np.sum(np.linalg.norm(np.cross(Vc[Tc[:, 1]] - Vc[Tc[:, 0]], Vc[Tc[:, 2]] - Vc[Tc[:, 0]]), axis=1))
                  / 2)
-    lumen_ml = float(np.sum(F < 0) * h ** 3 / 1000.0)
-    del F
     return {"markers_lps": ends, "geodesic": geo, "geodesic_cut": geo_cut, "fluid_y": fluid_y,
             "mucosa_area_mm2": area, "lumen_volume_ml": lumen_ml, "n_mesh_vertices": len(Vc),
             "path_offset_mm": float(np.max(off)) if off else 0.0}
+
+
+def surface_reference_geodesics(seed, size: str = "small", n_extra: int = 150, min_gc_mm: float = 6.0) -> dict:
+    """True cut geodesics (mm) among a drawn stomach's markers and ``n_extra`` more points spread over its mucosa.
+
+    The markers come first, in the truth's order and at its places, so the top-left block is the truth's
+    ``geodesic_cut_mm``; the other points are farthest-point samples of the mucosa at least ``min_gc_mm`` from the
+    greater curvature (the default incision) and as far from the openings as the markers are. For
+    ``flat_bound.surface_layout_reference``: the best flat layout of the whole mucosa, scored on the markers.
+    Returns ``geodesic_cut_mm`` (M, M), ``n_markers``, ``points_lps`` (M, 3 mm).
+    """
+    d = draw_parameters(seed, size)
+    model = StomachModel(d)
+    rng = np.random.default_rng(d["marker_seed"])
+    sdf, Vc, Tc, _ = _fine_surface(model)
+    ymin, ymax = Vc[:, 1].min(), Vc[:, 1].max()
+    fluid_y = float(ymax - d["fluid_depth_fraction"] * (ymax - ymin)) if d["fluid"] else None
+    sel = _pick_markers(model, Vc, d["n_markers"], rng, fluid_y)
+    ok = (model.gc_tree.query(Vc)[0] >= min_gc_mm) & (np.linalg.norm(Vc - model.cardia_open, axis=1) >= 16.0)
+    ok &= np.linalg.norm(Vc - model.pylorus_open, axis=1) >= 12.0
+    for tree, rw in ((model.oes_tree, d["oesophagus_wall_radius_mm"]), (model.duo_tree, d["duodenum_wall_radius_mm"])):
+        ok &= tree.query(Vc)[0] > rw + 3.0
+    cand = np.nonzero(ok)[0]
+    near = np.min(np.linalg.norm(Vc[cand, None, :] - Vc[None, sel, :], axis=2), axis=1)
+    extra = []
+    for _ in range(min(int(n_extra), len(cand))):
+        i = int(np.argmax(near))
+        extra.append(int(cand[i]))
+        np.minimum(near, np.linalg.norm(Vc[cand] - Vc[cand[i]], axis=1), out=near)
+    _, geo_cut, ends, _ = _cut_geodesics(model, Vc, Tc, sdf, np.concatenate([sel, extra]).astype(int))
+    return {"geodesic_cut_mm": geo_cut, "n_markers": int(len(sel)), "points_lps": ends}
 
 
 def _marker_truth(model, pos, fluid_y, bead):
