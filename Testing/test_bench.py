@@ -180,6 +180,45 @@ def test_family_summary_counts_grades_peers_and_the_bound():
     assert "| no spring / triangle over 1.5x |" in text and " | 2/1 | " in text
 
 
+def test_the_surfacebound_part_scores_methods_against_the_whole_mucosas_layout():
+    from StomachUnfoldLib.cli import BENCH_PARTS
+
+    assert "surfacebound" in BENCH_PARTS
+    cases = bench._cases(False, False, None, ["surfacebound"])
+    assert {c["source"]["random"] for c in cases} == set(bench.TUNE_SEEDS) | set(bench.HELD_OUT_SEEDS)
+    assert {c["method"] for c in cases} == {bench.SURFACE_LAYOUT}
+    assert all(c["params"]["n_extra"] == bench.SURFACE_EXTRA_POINTS for c in cases)
+    # one real row on a tiny drawn stomach: the bound as the family rows compute it, the layouts above the robust fit
+    row = bench.run_case(bench.Case("stomach-3/surface-layout", {"random": 3, "size": "tiny"}, {"n_extra": 10},
+                                    method=bench.SURFACE_LAYOUT, group="surface-bound"))
+    assert row["ok"], row.get("error")
+    ref = row["reference"]
+    assert ref["n_points"] == ref["n_markers"] + 10 and ref["n_pairs"] > 10
+    assert ref["marker_bound_robust"] <= ref["marker_bound"] + 1e-12
+    assert ref["surface_layout"] > ref["marker_bound_robust"]
+
+    def fam(vol, m, dist, group="stomachs-tune"):
+        return {"name": f"{vol}/{m}", "group": group, "method": m, "ok": True,
+                "quality": {"markers": {"pairwise_distance_distortion": dist}}}
+
+    def refrow(vol, bound, layout):
+        return {"name": f"{vol}/surface-layout", "group": "surface-bound", "method": bench.SURFACE_LAYOUT, "ok": True,
+                "reference": {"n_markers": 20, "n_points": 170, "marker_bound": bound, "marker_bound_robust": bound / 4,
+                              "surface_layout": layout, "surface_layout_robust": layout / 2}}
+    rows = [refrow("stomach-0", 0.02, 0.04), refrow("stomach-1", 0.02, 0.02), fam("stomach-0", "isometric", 0.05),
+            fam("stomach-1", "isometric", 0.025), fam("stomach-0", "lscm", 0.5), fam("stomach-1000", "isometric", 0.1)]
+    summ = bench.surface_bound_summary(rows)
+    assert [x["set"] for x in summ] == ["tuning"]              # no held-out reference row: no held-out line
+    t = summ[0]
+    assert t["volumes"] == 2 and t["other_points"] == 150 and t["surface_layout_over_1p5"] == 1
+    iso = t["methods"]["isometric"]
+    assert iso["volumes"] == 2 and iso["within_1p5_of_bound"] == 1 and iso["within_1p5_of_surface"] == 2
+    assert iso["over_surface_median"] == pytest.approx(np.median([0.05 / 0.04, 0.025 / 0.02]))
+    assert t["methods"]["lscm"]["volumes"] == 1
+    text = "\n".join(bench.surface_bound_markdown(rows))
+    assert "among 150 other points" in text and "| tuning | isometric | 2 |" in text
+
+
 def test_zero_clicks_row_sits_beside_the_two_click_rows():
     """Issue 17: the 'isometric, zero clicks' row (found points) is summarised apart from the two-click rows."""
     def row(vol, grade, zero=False, within=True, confident=True):

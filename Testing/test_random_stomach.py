@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from StomachUnfoldEval.flat_bound import flat_layout_bound, pairwise_distortion
+from StomachUnfoldEval.flat_bound import flat_layout_bound, pairwise_distortion, surface_layout_reference
 from StomachUnfoldEval.random_stomach import (
     LABELS,
     SIZES,
@@ -17,6 +17,7 @@ from StomachUnfoldEval.random_stomach import (
     insert_into_ct,
     random_stomach,
     surface_geodesics,
+    surface_reference_geodesics,
     write_random_stomach,
 )
 from StomachUnfoldLib.errors import InputError
@@ -266,6 +267,47 @@ def test_flat_bound_plane_cylinder_sphere():
     X = 30 * u[:, :2].copy()
     X[0] = np.nan                                                # a marker not seen
     assert pairwise_distortion(X, G)["n_pairs"] < naive["n_pairs"]
+
+
+def _hemisphere(n, seed=0):
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, 3))
+    u[:, 2] = np.abs(u[:, 2])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return 30 * np.arccos(np.clip(u @ u.T, -1, 1))
+
+
+def test_the_bound_is_not_the_least_median_and_the_whole_surface_scores_its_markers_above_it():
+    """The flat-layout bound minimises squared log errors; a robust fit of the same markers has a lower median, and
+    the best layout of the whole surface (markers among other points, all pairs fitted) scores them higher."""
+    G = _hemisphere(120)
+    bound = flat_layout_bound(G[:18, :18])
+    robust = flat_layout_bound(G[:18, :18], robust=True)
+    assert robust["median_relative_error"] < 0.8 * bound["median_relative_error"]
+    whole = surface_layout_reference(G, 18)
+    assert whole["n_points"] == 120 and whole["n_pairs"] == bound["n_pairs"]
+    assert whole["median_relative_error"] > 1.3 * bound["median_relative_error"]
+    # a developable surface lays out flat either way: a cylinder cut open along theta = 0
+    rng = np.random.default_rng(1)
+    th, z = rng.uniform(0.2, 2 * np.pi - 0.2, 80), rng.uniform(0, 80, 80)
+    C = np.hypot(25 * (th[:, None] - th[None]), z[:, None] - z[None])
+    assert surface_layout_reference(C, 18)["median_relative_error"] < 1e-3
+
+
+def test_the_reference_points_keep_the_truths_marker_geodesics(drawn_a):
+    _, truth, _ = drawn_a
+    ref = surface_reference_geodesics(SEED_A, "tiny", n_extra=12)
+    m = ref["n_markers"]
+    assert m == len(truth["markers"]) and ref["geodesic_cut_mm"].shape == (m + 12, m + 12)
+    gc = np.array(truth["geodesic_cut_mm"], float)
+    block = ref["geodesic_cut_mm"][:m, :m]
+    assert np.array_equal(np.isnan(block), np.isnan(gc)) and np.allclose(block, gc, equal_nan=True)
+    assert np.allclose(ref["points_lps"][:m], [mk["lps"] for mk in truth["markers"]])
+    other = ref["points_lps"][m:]
+    gcurve = np.array(truth["greater_curvature_lps"])
+    assert np.min(np.linalg.norm(other[:, None] - gcurve[None], axis=2)) > 5.0   # clear of the incision's band
+    assert np.min(np.linalg.norm(other[:, None] - ref["points_lps"][None], axis=2)
+                  + 1e3 * np.eye(12, m + 12, m)) > 1.0                         # spread out, none repeated
 
 
 def test_write_random_stomach(tmp_path):
