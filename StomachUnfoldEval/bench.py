@@ -856,6 +856,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
         _save(fig, out_dir, "full_size_stages.png", made)
     _family_plot(ok, out_dir, made, plt)
     _mesh_size_plot(rows, out_dir, made, plt)
+    _surface_bound_plot(rows, out_dir, made, plt)
     memory_plot(ok, out_dir, made, plt)
     return made
 
@@ -925,6 +926,37 @@ def _mesh_size_plot(rows: list[dict], out_dir: str, made: list[str], plt) -> Non
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     _save(fig, out_dir, "mesh_size.png", made)
+
+
+def _surface_bound_plot(rows: list[dict], out_dir: str, made: list[str], plt) -> None:
+    """surface_bound.png: per random stomach with a ``surfacebound`` row, the default method's marker distortion over
+    the flat-layout bound against the whole mucosa's best layout over the same bound (plain and robust)."""
+    refs = {r["name"].split("/")[0]: r["reference"] for r in rows if r.get("group") == "surface-bound" and r.get("ok")}
+    mine = {r["name"].split("/")[0]: r["quality"]["markers"]["pairwise_distance_distortion"] for r in rows
+            if r.get("ok") and r["method"] == FAMILY_METHODS[0] and r["group"] in ("stomachs-tune", "stomachs-held-out")
+            and not r.get("zero_clicks") and r["quality"].get("markers", {}).get("pairwise_distance_distortion")}
+    vols = [v for v in refs if v in mine]
+    if not vols:
+        return
+    held = np.array([int(v.split("-")[1]) in HELD_OUT_SEEDS for v in vols])
+    b = np.array([refs[v]["marker_bound"] for v in vols])
+    y = np.array([mine[v] for v in vols]) / b
+    fig, ax = plt.subplots(figsize=(7.5, 6))
+    for key, style, what in (("surface_layout", "o", "whole mucosa, squared log errors"),
+                             ("surface_layout_robust", "^", "whole mucosa, robust")):
+        x = np.array([refs[v][key] for v in vols]) / b
+        for sel, colour, label in ((~held, "tab:blue", "tuning 0-29"), (held, "tab:orange", "held-out 1000-1029")):
+            ax.scatter(x[sel], y[sel], marker=style, s=22, alpha=0.7, color=colour,
+                       facecolors="none" if key.endswith("robust") else colour, label=f"{what}, {label}")
+    ax.axvline(1.5, color="k", ls="--", lw=1)
+    ax.axhline(1.5, color="k", ls="--", lw=1)
+    ax.plot([0, 3], [0, 3], color="0.6", lw=0.8)
+    ax.set(xlabel="best flat layout of the whole mucosa, on the markers / flat-layout bound",
+           ylabel=f"{FAMILY_METHODS[0]} view, on the markers / flat-layout bound", xlim=(0, None), ylim=(0, None),
+           title="the bound's 1.5x line, for any layout that does not know the markers")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    _save(fig, out_dir, "surface_bound.png", made)
 
 
 def _family_plot(ok: list[dict], out_dir: str, made: list[str], plt) -> None:
