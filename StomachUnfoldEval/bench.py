@@ -77,6 +77,13 @@ FRESH7_SEEDS = tuple(range(9000, 9030))
 #: The bench parts ``fresh-8`` and ``fresh-9`` run them alone.
 FRESH8_SEEDS = tuple(range(10000, 10030))
 FRESH9_SEEDS = tuple(range(11000, 11030))
+#: Every random-stomach seed set by its family group: tuned on, then the ten held out.
+FAMILY_SEED_SETS = (("stomachs-tune", TUNE_SEEDS), ("stomachs-held-out", HELD_OUT_SEEDS),
+                    ("stomachs-fresh", FRESH_SEEDS), ("stomachs-fresh-2", FRESH2_SEEDS),
+                    ("stomachs-fresh-3", FRESH3_SEEDS), ("stomachs-fresh-4", FRESH4_SEEDS),
+                    ("stomachs-fresh-5", FRESH5_SEEDS), ("stomachs-fresh-6", FRESH6_SEEDS),
+                    ("stomachs-fresh-7", FRESH7_SEEDS), ("stomachs-fresh-8", FRESH8_SEEDS),
+                    ("stomachs-fresh-9", FRESH9_SEEDS))
 #: The held-out sets a bench part of their own runs alone (each is also in ``stomachs``).
 FRESH_PARTS = ("fresh-4", "fresh-5", "fresh-6", "fresh-7", "fresh-8", "fresh-9")
 #: The methods compared on every random stomach, on the same volumes in one run.
@@ -336,6 +343,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += mesh_size_cases(quick)
     if "surfacebound" in parts:
         cases += surface_bound_cases(quick)
+    if "surfacebound-fresh" in parts:
+        cases += surface_bound_cases(quick, fresh=True)
     return cases
 
 
@@ -397,10 +406,12 @@ def mesh_size_markdown(rows: list[dict]) -> list[str]:
 SURFACE_LAYOUT = "surface-layout"
 
 
-def surface_bound_cases(quick: bool) -> list[dict]:
-    """The tuning and held-out random stomachs' references: the markers' flat-layout bound against the best layout of
-    the whole mucosa (see :func:`surface_layout_row`)."""
-    seeds = (TUNE_SEEDS[:1] + HELD_OUT_SEEDS[:1]) if quick else (TUNE_SEEDS + HELD_OUT_SEEDS)
+def surface_bound_cases(quick: bool, fresh: bool = False) -> list[dict]:
+    """The tuning and held-out random stomachs' references (part ``surfacebound``), or the nine later held-out sets'
+    (``fresh``, part ``surfacebound-fresh``): the markers' flat-layout bound against the best layout of the whole
+    mucosa (see :func:`surface_layout_row`)."""
+    sets = [seeds for group, seeds in FAMILY_SEED_SETS if (group not in ("stomachs-tune", "stomachs-held-out")) == fresh]
+    seeds = tuple(x[0] for x in sets) if quick else tuple(x for s in sets for x in s)
     n = 20 if quick else SURFACE_EXTRA_POINTS
     return [Case(f"stomach-{seed}/{SURFACE_LAYOUT}", {"random": int(seed), "size": "small"}, {"n_extra": n},
                  method=SURFACE_LAYOUT, group="surface-bound") for seed in seeds]
@@ -433,39 +444,51 @@ def surface_layout_row(case: dict) -> dict:
     return row
 
 
+def _surface_bound_entry(label: str, refs: dict, rows: list[dict], groups: set) -> dict:
+    """One line of :func:`surface_bound_summary`: the reference rows ``refs`` (volume name -> reference) of one or
+    more seed sets, and the family rows of ``groups`` on those volumes."""
+    b = np.array([v["marker_bound"] for v in refs.values()])
+    rel = {k: np.array([v[k] for v in refs.values()]) / b
+           for k in ("marker_bound_robust", "surface_layout", "surface_layout_robust")}
+    entry = {"set": label, "volumes": len(refs), "bound_median": float(np.median(b)),
+             "other_points": int(np.median([v["n_points"] - v["n_markers"] for v in refs.values()])),
+             **{f"{k}_over_bound_median": float(np.median(x)) for k, x in rel.items()},
+             **{f"{k}_over_bound_max": float(np.max(x)) for k, x in rel.items()},
+             **{f"{k}_over_1p5": int(np.sum(x > 1.5)) for k, x in rel.items()}, "methods": {}}
+    for m in FAMILY_METHODS:
+        rs = [r for r in rows if r["group"] in groups and r["method"] == m and r.get("ok")
+              and not r.get("zero_clicks") and r["name"].split("/")[0] in refs
+              and r["quality"].get("markers", {}).get("pairwise_distance_distortion") is not None]
+        if not rs:
+            continue
+        d = np.array([r["quality"]["markers"]["pairwise_distance_distortion"] for r in rs])
+        ref = [refs[r["name"].split("/")[0]] for r in rs]
+        xb = d / np.array([v["marker_bound"] for v in ref])
+        xs = d / np.array([v["surface_layout"] for v in ref])
+        entry["methods"][m] = {"volumes": len(rs), "over_bound_median": float(np.median(xb)),
+                               "within_1p5_of_bound": int(np.sum(xb <= 1.5)),
+                               "over_surface_median": float(np.median(xs)),
+                               "within_1p5_of_surface": int(np.sum(xs <= 1.5))}
+    return entry
+
+
 def surface_bound_summary(rows: list[dict]) -> list[dict]:
-    """Per seed set (tuning, held-out): the ``surfacebound`` references over the bound, and each family method's
-    marker distortion over the bound and over the whole mucosa's layout, on the volumes that have both."""
+    """Per seed set with reference rows (and all held-out sets together, when there are several): the
+    ``surfacebound`` references over the bound, and each family method's marker distortion over the bound and over
+    the whole mucosa's layout, on the volumes that have both."""
     refs = {r["name"].split("/")[0]: r["reference"] for r in rows if r.get("group") == "surface-bound" and r.get("ok")}
-    out = []
-    for label, group, seeds in (("tuning", "stomachs-tune", TUNE_SEEDS), ("held-out", "stomachs-held-out",
-                                                                           HELD_OUT_SEEDS)):
+    out, unseen, unseen_groups = [], {}, set()
+    for group, seeds in FAMILY_SEED_SETS:
         mine = {f"stomach-{seed}": refs[f"stomach-{seed}"] for seed in seeds if f"stomach-{seed}" in refs}
         if not mine:
             continue
-        b = np.array([v["marker_bound"] for v in mine.values()])
-        rel = {k: np.array([v[k] for v in mine.values()]) / b
-               for k in ("marker_bound_robust", "surface_layout", "surface_layout_robust")}
-        entry = {"set": label, "volumes": len(mine), "bound_median": float(np.median(b)),
-                 "other_points": int(np.median([v["n_points"] - v["n_markers"] for v in mine.values()])),
-                 **{f"{k}_over_bound_median": float(np.median(x)) for k, x in rel.items()},
-                 **{f"{k}_over_bound_max": float(np.max(x)) for k, x in rel.items()},
-                 **{f"{k}_over_1p5": int(np.sum(x > 1.5)) for k, x in rel.items()}, "methods": {}}
-        for m in FAMILY_METHODS:
-            rs = [r for r in rows if r["group"] == group and r["method"] == m and r.get("ok")
-                  and not r.get("zero_clicks") and r["name"].split("/")[0] in mine
-                  and r["quality"].get("markers", {}).get("pairwise_distance_distortion") is not None]
-            if not rs:
-                continue
-            d = np.array([r["quality"]["markers"]["pairwise_distance_distortion"] for r in rs])
-            ref = [mine[r["name"].split("/")[0]] for r in rs]
-            xb = d / np.array([v["marker_bound"] for v in ref])
-            xs = d / np.array([v["surface_layout"] for v in ref])
-            entry["methods"][m] = {"volumes": len(rs), "over_bound_median": float(np.median(xb)),
-                                   "within_1p5_of_bound": int(np.sum(xb <= 1.5)),
-                                   "over_surface_median": float(np.median(xs)),
-                                   "within_1p5_of_surface": int(np.sum(xs <= 1.5))}
-        out.append(entry)
+        label = "tuning" if group == "stomachs-tune" else f"{group[len('stomachs-'):]} {seeds[0]}-"
+        out.append(_surface_bound_entry(label, mine, rows, {group}))
+        if group != "stomachs-tune":
+            unseen.update(mine)
+            unseen_groups.add(group)
+    if len(unseen_groups) > 1:
+        out.append(_surface_bound_entry(f"all {len(unseen_groups)} held-out sets", unseen, rows, unseen_groups))
     return out
 
 
@@ -511,17 +534,8 @@ def zero_click_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
 def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None) -> list[dict]:
     """Random stomachs (tuned-on and held-out seeds) and hybrids in the real CTs, every FAMILY_METHODS on each."""
     cache = _phantom_cache(cache_dir)
-    groups = [("stomachs-tune", TUNE_SEEDS[:3] if quick else TUNE_SEEDS),
-              ("stomachs-held-out", HELD_OUT_SEEDS[:3] if quick else HELD_OUT_SEEDS),
-              ("stomachs-fresh", () if quick else FRESH_SEEDS),
-              ("stomachs-fresh-2", () if quick else FRESH2_SEEDS),
-              ("stomachs-fresh-3", () if quick else FRESH3_SEEDS),
-              ("stomachs-fresh-4", () if quick else FRESH4_SEEDS),
-              ("stomachs-fresh-5", () if quick else FRESH5_SEEDS),
-              ("stomachs-fresh-6", () if quick else FRESH6_SEEDS),
-              ("stomachs-fresh-7", () if quick else FRESH7_SEEDS),
-              ("stomachs-fresh-8", () if quick else FRESH8_SEEDS),
-              ("stomachs-fresh-9", () if quick else FRESH9_SEEDS)]
+    groups = [(group, (seeds[:3] if group in ("stomachs-tune", "stomachs-held-out") else ()) if quick else seeds)
+              for group, seeds in FAMILY_SEED_SETS]
     cases = []
     for group, seeds in groups:
         for seed in seeds:
@@ -932,20 +946,21 @@ def _surface_bound_plot(rows: list[dict], out_dir: str, made: list[str], plt) ->
     """surface_bound.png: per random stomach with a ``surfacebound`` row, the default method's marker distortion over
     the flat-layout bound against the whole mucosa's best layout over the same bound (plain and robust)."""
     refs = {r["name"].split("/")[0]: r["reference"] for r in rows if r.get("group") == "surface-bound" and r.get("ok")}
+    family = {group for group, _ in FAMILY_SEED_SETS}
     mine = {r["name"].split("/")[0]: r["quality"]["markers"]["pairwise_distance_distortion"] for r in rows
-            if r.get("ok") and r["method"] == FAMILY_METHODS[0] and r["group"] in ("stomachs-tune", "stomachs-held-out")
+            if r.get("ok") and r["method"] == FAMILY_METHODS[0] and r["group"] in family
             and not r.get("zero_clicks") and r["quality"].get("markers", {}).get("pairwise_distance_distortion")}
     vols = [v for v in refs if v in mine]
     if not vols:
         return
-    held = np.array([int(v.split("-")[1]) in HELD_OUT_SEEDS for v in vols])
+    held = np.array([int(v.split("-")[1]) not in TUNE_SEEDS for v in vols])
     b = np.array([refs[v]["marker_bound"] for v in vols])
     y = np.array([mine[v] for v in vols]) / b
     fig, ax = plt.subplots(figsize=(7.5, 6))
     for key, style, what in (("surface_layout", "o", "whole mucosa, squared log errors"),
                              ("surface_layout_robust", "^", "whole mucosa, robust")):
         x = np.array([refs[v][key] for v in vols]) / b
-        for sel, colour, label in ((~held, "tab:blue", "tuning 0-29"), (held, "tab:orange", "held-out 1000-1029")):
+        for sel, colour, label in ((~held, "tab:blue", "tuning 0-29"), (held, "tab:orange", "held out")):
             ax.scatter(x[sel], y[sel], marker=style, s=22, alpha=0.7, color=colour,
                        facecolors="none" if key.endswith("robust") else colour, label=f"{what}, {label}")
     ax.axvline(1.5, color="k", ls="--", lw=1)

@@ -183,11 +183,13 @@ def test_family_summary_counts_grades_peers_and_the_bound():
 def test_the_surfacebound_part_scores_methods_against_the_whole_mucosas_layout():
     from StomachUnfoldLib.cli import BENCH_PARTS
 
-    assert "surfacebound" in BENCH_PARTS
+    assert "surfacebound" in BENCH_PARTS and "surfacebound-fresh" in BENCH_PARTS
     cases = bench._cases(False, False, None, ["surfacebound"])
     assert {c["source"]["random"] for c in cases} == set(bench.TUNE_SEEDS) | set(bench.HELD_OUT_SEEDS)
     assert {c["method"] for c in cases} == {bench.SURFACE_LAYOUT}
     assert all(c["params"]["n_extra"] == bench.SURFACE_EXTRA_POINTS for c in cases)
+    fresh = {c["source"]["random"] for c in bench._cases(False, False, None, ["surfacebound-fresh"])}
+    assert fresh == {x for g, seeds in bench.FAMILY_SEED_SETS[2:] for x in seeds} and len(fresh) == 270
     # one real row on a tiny drawn stomach: the bound as the family rows compute it, the layouts above the robust fit
     row = bench.run_case(bench.Case("stomach-3/surface-layout", {"random": 3, "size": "tiny"}, {"n_extra": 10},
                                     method=bench.SURFACE_LAYOUT, group="surface-bound"))
@@ -217,6 +219,13 @@ def test_the_surfacebound_part_scores_methods_against_the_whole_mucosas_layout()
     assert t["methods"]["lscm"]["volumes"] == 1
     text = "\n".join(bench.surface_bound_markdown(rows))
     assert "among 150 other points" in text and "| tuning | isometric | 2 |" in text
+    # two held-out sets: a line each and one for both together
+    rows += [refrow("stomach-1000", 0.02, 0.02), fam("stomach-1000", "isometric", 0.02, "stomachs-held-out"),
+             refrow("stomach-3000", 0.02, 0.01), fam("stomach-3000", "isometric", 0.02, "stomachs-fresh")]
+    summ = bench.surface_bound_summary(rows)
+    assert [x["set"] for x in summ] == ["tuning", "held-out 1000-", "fresh 3000-", "all 2 held-out sets"]
+    both = summ[-1]["methods"]["isometric"]
+    assert (both["volumes"], both["within_1p5_of_bound"], both["within_1p5_of_surface"]) == (2, 2, 1)
 
 
 def test_zero_clicks_row_sits_beside_the_two_click_rows():
