@@ -82,44 +82,29 @@ def _smacof(X, I, J, g, wt, M, iters=400, tol=1e-9):
     return X
 
 
-def _polish(X, I, J, g):
+def _polish(X, I, J, g, eps: float | None = None, maxiter: int = 500):
+    """Layout X (M,2 mm) polished for the sum of squared log distance ratios log(d2/g)^2, or with ``eps`` for the
+    smoothed absolute values sqrt(log(d2/g)^2 + eps^2) (L-BFGS)."""
     M = len(X)
 
     def fun(x):
-        """Sum of squared log distance ratios and its gradient."""
+        """The sum and its gradient."""
         Y = x.reshape(M, 2)
         v = Y[I] - Y[J]
         d = np.maximum(np.linalg.norm(v, axis=1), 1e-9)
         lr = np.log(d / g)
-        grad_d = 2 * lr / d
-        gv = (grad_d / d)[:, None] * v
+        if eps is None:
+            loss, dl = lr ** 2, 2 * lr
+        else:
+            loss = np.sqrt(lr ** 2 + eps ** 2)
+            dl = lr / loss
+        gv = (dl / d / d)[:, None] * v
         G = np.zeros_like(Y)
         np.add.at(G, I, gv)
         np.add.at(G, J, -gv)
-        return float(np.sum(lr ** 2)), G.ravel()
+        return float(np.sum(loss)), G.ravel()
 
-    r = minimize(fun, X.ravel(), jac=True, method="L-BFGS-B", options={"maxiter": 500})
-    return r.x.reshape(M, 2)
-
-
-def _polish_robust(X, I, J, g, eps: float):
-    """Layout X (M,2 mm) polished for sum sqrt(log(d2/g)^2 + eps^2) (a smoothed L1 of the log errors)."""
-    M = len(X)
-
-    def fun(x):
-        """The smoothed L1 sum and its gradient."""
-        Y = x.reshape(M, 2)
-        v = Y[I] - Y[J]
-        d = np.maximum(np.linalg.norm(v, axis=1), 1e-9)
-        lr = np.log(d / g)
-        s = np.sqrt(lr ** 2 + eps ** 2)
-        gv = (lr / s / d ** 2)[:, None] * v
-        G = np.zeros_like(Y)
-        np.add.at(G, I, gv)
-        np.add.at(G, J, -gv)
-        return float(np.sum(s)), G.ravel()
-
-    r = minimize(fun, X.ravel(), jac=True, method="L-BFGS-B", options={"maxiter": 2000})
+    r = minimize(fun, X.ravel(), jac=True, method="L-BFGS-B", options={"maxiter": maxiter})
     return r.x.reshape(M, 2)
 
 
@@ -154,7 +139,7 @@ def flat_layout_bound(geodesic_mm, pair_min_mm: float = 10.0, pair_max_mm: float
         X = _smacof(X0.copy(), I, J, g, wt, M)
         cands = [X, _polish(X, I, J, g)]
         if robust:
-            cands += [_polish_robust(cands[1], I, J, g, eps) for eps in ROBUST_EPS]
+            cands += [_polish(cands[1], I, J, g, eps, maxiter=2000) for eps in ROBUST_EPS]
         for cand in cands:
             med, mabs, _ = _stats(cand, I, J, g)
             if best is None or med < best[0]:
