@@ -698,13 +698,24 @@ def _regions(model: StomachModel, P, fluid_y):
     return names, under
 
 
-def _pick_markers(model: StomachModel, V, n, rng, fluid_y, sep=12.0):
-    d_gc = model.gc_tree.query(V)[0]
-    ok = (d_gc >= MARKER_MIN_GC_MM) & (np.linalg.norm(V - model.cardia_open, axis=1) >= 16.0)
-    ok &= np.linalg.norm(V - model.pylorus_open, axis=1) >= 12.0
+def _clear_of_openings(model: StomachModel, V):
+    """Mucosa points V (LPS mm) far enough from the cardia and pylorus openings and their tubes to carry a marker."""
+    ok = (np.linalg.norm(V - model.cardia_open, axis=1) >= 16.0) & (np.linalg.norm(V - model.pylorus_open, axis=1)
+                                                                     >= 12.0)
     for tree, rw in ((model.oes_tree, model.d["oesophagus_wall_radius_mm"]),
                      (model.duo_tree, model.d["duodenum_wall_radius_mm"])):
         ok &= tree.query(V)[0] > rw + 3.0
+    return ok
+
+
+def _fluid_level(V, fraction):
+    """The air-fluid level's LPS y (mm) for a fluid depth ``fraction`` of the mucosa mesh V's extent in y, or None."""
+    ymin, ymax = V[:, 1].min(), V[:, 1].max()
+    return None if fraction is None else float(ymax - fraction * (ymax - ymin))
+
+
+def _pick_markers(model: StomachModel, V, n, rng, fluid_y, sep=12.0):
+    ok = (model.gc_tree.query(V)[0] >= MARKER_MIN_GC_MM) & _clear_of_openings(model, V)
     if fluid_y is not None:
         ok &= np.abs(V[:, 1] - fluid_y) >= 4.0
     names, under = _regions(model, V, fluid_y)
@@ -778,8 +789,7 @@ def _cut_geodesics(model: StomachModel, Vc, Tc, sdf: GridSDF, sel):
 def _model_geodesics(model: StomachModel, rng, n_markers, fluid_fraction=None, h=GEODESIC_GRID_MM):
     """Fine lumen SDF grid, mucosa mesh, marker choice and both geodesic matrices; returns a dict."""
     sdf, Vc, Tc, lumen_ml = _fine_surface(model, h)
-    ymin, ymax = Vc[:, 1].min(), Vc[:, 1].max()
-    fluid_y = None if fluid_fraction is None else float(ymax - fluid_fraction * (ymax - ymin))
+    fluid_y = _fluid_level(Vc, fluid_fraction)
     sel = _pick_markers(model, Vc, n_markers, rng, fluid_y)
     geo, geo_cut, ends, paths = _cut_geodesics(model, Vc, Tc, sdf, sel)
     off = [float(np.max(np.abs(model.fields(p)["f_r"]))) for p in paths.values()]
@@ -803,14 +813,9 @@ def surface_reference_geodesics(seed, size: str = "small", n_extra: int = 150, m
     model = StomachModel(d)
     rng = np.random.default_rng(d["marker_seed"])
     sdf, Vc, Tc, _ = _fine_surface(model)
-    ymin, ymax = Vc[:, 1].min(), Vc[:, 1].max()
-    fluid_y = float(ymax - d["fluid_depth_fraction"] * (ymax - ymin)) if d["fluid"] else None
-    sel = _pick_markers(model, Vc, d["n_markers"], rng, fluid_y)
-    ok = (model.gc_tree.query(Vc)[0] >= min_gc_mm) & (np.linalg.norm(Vc - model.cardia_open, axis=1) >= 16.0)
-    ok &= np.linalg.norm(Vc - model.pylorus_open, axis=1) >= 12.0
-    for tree, rw in ((model.oes_tree, d["oesophagus_wall_radius_mm"]), (model.duo_tree, d["duodenum_wall_radius_mm"])):
-        ok &= tree.query(Vc)[0] > rw + 3.0
-    cand = np.nonzero(ok)[0]
+    fluid = d["fluid_depth_fraction"] if d["fluid"] else None
+    sel = _pick_markers(model, Vc, d["n_markers"], rng, _fluid_level(Vc, fluid))
+    cand = np.nonzero((model.gc_tree.query(Vc)[0] >= min_gc_mm) & _clear_of_openings(model, Vc))[0]
     near = np.min(np.linalg.norm(Vc[cand, None, :] - Vc[None, sel, :], axis=2), axis=1)
     extra = []
     for _ in range(min(int(n_extra), len(cand))):

@@ -519,8 +519,7 @@ def _cmd_phantom(args) -> int:
 #: The benchmark's parts (``bench --parts``).
 BENCH_PARTS = ("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling", "stomachs", "memory",
                "zeroclicks", "meshsize", "autopoints", "hybrids", "fresh-4", "fresh-5", "fresh-6", "fresh-7",
-               "fresh-8", "fresh-9", "surfacebound",
-               "surfacebound-fresh")
+               "fresh-8", "fresh-9", "surfacebound", "surfacebound-fresh")
 
 
 def _cmd_bench(args) -> int:
