@@ -181,9 +181,12 @@ def test_family_summary_counts_grades_peers_and_the_bound():
 
 
 def test_the_surfacebound_part_scores_methods_against_the_whole_mucosas_layout():
-    from StomachUnfoldLib.cli import BENCH_PARTS
+    from StomachUnfoldLib.cli import BENCH_DEFAULT_PARTS, BENCH_PARTS, build_parser
 
     assert "surfacebound" in BENCH_PARTS and "surfacebound-fresh" in BENCH_PARTS
+    # a plain bench leaves out the 85 minutes of the later held-out sets' references
+    default = build_parser().parse_args(["bench"]).parts.split(",")
+    assert "surfacebound" in default and "surfacebound-fresh" not in default and tuple(default) == BENCH_DEFAULT_PARTS
     cases = bench._cases(False, False, None, ["surfacebound"])
     assert {c["source"]["random"] for c in cases} == set(bench.TUNE_SEEDS) | set(bench.HELD_OUT_SEEDS)
     assert {c["method"] for c in cases} == {bench.SURFACE_LAYOUT}
