@@ -530,6 +530,32 @@ def test_a_map_that_folds_with_heavy_distance_terms_is_solved_again_with_light_o
     assert alone["hidden_fold_mm2"] == pytest.approx(heavy)
 
 
+def _ruffled_disc(nr=16, nphi=120, r0=5.0, r1=20.0, h=0.1, k=5):
+    """A ruffled annulus cut open along one radius (V,3 mm; triangles; a start map V,2 mm): more angle round its
+    centre than a plane has (about 2.12 pi), so its flat map must fold its two lips over each other or press them."""
+    r, phi = np.linspace(r0, r1, nr), np.linspace(0, 2 * np.pi, nphi)
+    R, P = np.meshgrid(r, phi, indexing="ij")
+    v = np.stack([R * np.cos(P), R * np.sin(P), h * R * np.sin(k * P)], -1).reshape(-1, 3)
+    return v, _grid(nr, nphi), np.stack([R * np.cos(0.97 * P), R * np.sin(0.97 * P)], -1).reshape(-1, 2)
+
+
+def test_pushing_apart_lifts_the_lips_of_a_cut_off_each_other():
+    from StomachUnfoldLib.methods.isometric import overlapping_triangles, push_apart
+
+    v, f, uv0 = _ruffled_disc()
+    uv, _ = arap(v, f, uv0, injective=False)
+    folded = overlapping_triangles(f, uv).sum()
+    assert folded > 30                              # ARAP lays one lip over the other
+    pushed = push_apart(v, f, uv)
+    assert overlapping_triangles(f, pushed).sum() < 0.3 * folded
+    assert untangle(pushed, f)[2] == 0              # no triangle left turned over
+    # a map with nothing folded stays where it is: every boundary vertex is held at its place
+    half = f[(f % 120 < 60).all(1)]                 # the triangles of the first half turn: no lip meets another
+    settled = arap(v, half, uv0, injective=False, max_iter=200, tol=1e-9)[0]
+    used = np.unique(half)
+    assert np.abs(push_apart(v, half, settled) - settled)[used].max() < 0.05
+
+
 def test_the_strain_limit_relieves_a_stretched_boundary_and_leaves_the_rest():
     # a flat 2 mm grid in 3D, its exact flat map, one boundary vertex pulled 2.4 mm outwards: its triangles 2.2x
     nu = nv = 15
