@@ -1483,7 +1483,7 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, candidates: int = 16):
         t = uv[bv].copy()
         P = uv[f]
         c = P.mean(1)
-        _, nb = cKDTree(c).query(t, k=min(candidates, len(f)))
+        _, nb = cKDTree(c, balanced_tree=False, compact_nodes=False).query(t, k=min(candidates, len(f)))
         nb = nb.reshape(len(bv), -1)
         a, b, d = P[nb, 0], P[nb, 1], P[nb, 2]
         q = t[:, None, :]
