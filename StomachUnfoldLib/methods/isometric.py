@@ -637,15 +637,20 @@ def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16, q
 def _inside_another(P: np.ndarray, c: np.ndarray, own: np.ndarray, nb: np.ndarray) -> np.ndarray:
     """Bool (Q,): the centroid c[own] (mm) lies strictly inside one of the triangles nb (Q,k indices into the
     corners P (F,3,2 mm)) other than itself."""
+    return _inside_any(P, c[own], nb, nb == own[:, None])
+
+
+def _inside_any(P: np.ndarray, q: np.ndarray, nb: np.ndarray, skip: np.ndarray) -> np.ndarray:
+    """Bool (Q,): the point q (Q,2 mm) lies strictly inside one of the triangles nb (Q,k indices into the corners
+    P (F,3,2 mm)) not marked in ``skip`` (Q,k)."""
     a, b, d = P[nb, 0], P[nb, 1], P[nb, 2]                      # (Q,k,2)
-    q = c[own][:, None, :]
+    q = q[:, None, :]
     den = (b[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])
     den = np.where(np.abs(den) > 1e-12, den, np.nan)
     l1 = ((q[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1]) - (q[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])) / den
     l2 = ((b[..., 0] - a[..., 0]) * (q[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (q[..., 0] - a[..., 0])) / den
     inside = (l1 > 1e-3) & (l2 > 1e-3) & (1 - l1 - l2 > 1e-3)
-    inside &= nb != own[:, None]
-    return inside.any(1)
+    return (inside & ~skip).any(1)
 
 
 def nearest_alive(tree, c: np.ndarray, own: np.ndarray, alive: np.ndarray, k: int) -> np.ndarray:
@@ -1485,16 +1490,8 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, candidates: int = 16):
         c = P.mean(1)
         _, nb = cKDTree(c, balanced_tree=False, compact_nodes=False).query(t, k=min(candidates, len(f)))
         nb = nb.reshape(len(bv), -1)
-        a, b, d = P[nb, 0], P[nb, 1], P[nb, 2]
-        q = t[:, None, :]
-        den = (b[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])
-        den = np.where(np.abs(den) > 1e-12, den, np.nan)
-        l1 = ((q[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1])
-              - (q[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])) / den
-        l2 = ((b[..., 0] - a[..., 0]) * (q[..., 1] - a[..., 1])
-              - (b[..., 1] - a[..., 1]) * (q[..., 0] - a[..., 0])) / den
-        inside = (l1 > 1e-3) & (l2 > 1e-3) & (1 - l1 - l2 > 1e-3) & ~(f[nb] == bv[:, None, None]).any(2)
-        idx = np.flatnonzero(inside.any(1))
+        inside = _inside_any(P, t, nb, (f[nb] == bv[:, None, None]).any(2))
+        idx = np.flatnonzero(inside)
         if not len(idx):
             return t
         _, j = cKDTree(t).query(t[idx], k=min(k_out, len(bv)))
