@@ -1457,7 +1457,7 @@ def _similar_retry(cut, uv0, pairs, bonly, s: float, weight: float, current: tup
     return uv, f_keep, f_fold, fold_mm2, dict(info, similar_kept=False, **trace)
 
 
-def _boundary_reach(f: np.ndarray, nv: int, hops: int) -> tuple[np.ndarray, object]:
+def _boundary_reach(f: np.ndarray, hops: int) -> tuple[np.ndarray, object]:
     """The boundary vertices bv (B,) of triangles f and a sparse (B,B) matrix, nonzero where two of them lie within
     ``hops`` boundary edges of each other along the outline (a vertex's own stretch of its loop)."""
     from scipy.sparse import coo_matrix, identity
@@ -1496,8 +1496,7 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, candidates: int = 16):
             return t
         _, j = cKDTree(t).query(t[idx], k=min(k_out, len(bv)))
         j = j.reshape(len(idx), -1)
-        near = np.asarray(reach[idx[:, None], j].todense()) > 0 if len(idx) else None
-        far = ~near
+        far = np.asarray(reach[idx[:, None], j].todense()) == 0
         has = far.any(1)
         first = np.argmax(far, axis=1)
         pick = j[np.arange(len(idx)), first]
@@ -1515,7 +1514,7 @@ def push_apart(v: np.ndarray, f: np.ndarray, uv: np.ndarray, pairs=None, boundar
     (its distance ``pairs``, straight boundary and as-similar ``similar`` region as for the map uv) with every
     boundary vertex held at a target that moves it out of any triangle it lies inside. ``check()`` is called between
     the steps (it raises to abandon the map)."""
-    bv, reach = _boundary_reach(f, len(v), PUSH_SKIP)
+    bv, reach = _boundary_reach(f, PUSH_SKIP)
     targets = _push_targets(f, bv, reach)
     tick = None if check is None else (lambda fraction: check())  # noqa: E731
     out, _ = arap(v, f, uv, max_iter=PUSH_STEPS if steps is None else steps, tol=0.0, progress=tick,
