@@ -283,10 +283,8 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     ``similar`` (bool (F,)) are as-similar-as-possible instead: their rotation times the best scale, held within
     ``scale_range``. ``factors``: a dict kept by the caller for maps of this one mesh (v, f): the factorised system
     is stored there and used again by a later call with the same boundary weight, ``boundary_only`` and ``pairs``
-    objects (the as-similar-as-possible retry solves its parent map's system). ``pull`` = (vertices (B,), weight,
-    targets): a proximal term weight x sum |uv_i - t_i|^2 (mm^2) on those vertices, with ``targets(uv)`` giving their
-    targets t (B,2 mm) at each step (see :func:`push_apart`); its system is factorised apart. Returns (uv, info with
-    iterations, energy trace, flipped count).
+    objects (the as-similar-as-possible retry solves its parent map's system). ``pull``: see :func:`_add_pull`.
+    Returns (uv, info with iterations, energy trace, flipped count).
     """
     progress = progress or (lambda fraction: None)
     nv, nf = len(v), len(f)
@@ -295,17 +293,8 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     w = np.clip(_half_edge_cot(x), *weight_clip) * good[:, None]     # half-edge weights (F,3)
     if stiffness is not None:
         w = w * np.asarray(stiffness, float)[:, None]
-    if pull is None:
-        lu, pin, keep, col_pin = _stored_factor(factors if stiffness is None else None, f, w, nv, boundary_weight,
-                                                boundary_only, pairs)
-    else:
-        from scipy.sparse import coo_matrix
-
-        pv, p_w, p_target = pull
-        pv = np.asarray(pv, np.int64)
-        D = coo_matrix((np.full(len(pv), float(p_w)), (pv, pv)), shape=(nv, nv))
-        lu, pin, keep, col_pin = _pinned_factor((_system_matrix(f, w, nv, boundary_weight, boundary_only, pairs)
-                                                 + D).tocsc(), f)
+    lu, pin, keep, col_pin = _arap_factor(factors if stiffness is None else None, f, w, nv, boundary_weight,
+                                          boundary_only, pairs, pull)
     if pairs is not None:
         pa, pb, pg, pw = pairs
     # edge vectors of the rest triangles for half-edge c: from vertex c+1 to vertex c+2
@@ -316,8 +305,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     # the triangles' rest frames are counter-clockwise: a mirrored start map would have to turn inside out
     if np.sum(signed_area_2d(uv, f)[good] > 0) < 0.5 * good.sum():
         uv[:, 1] *= -1.0
-    iterates = []                              # every iterate: the latest whose free boundary does not cross is found last
-    energies = []
+    iterates, energies = [], []  # every iterate (the latest whose free boundary does not cross is found last); energies
     # half-edges c-major (index c * F + t: half-edge c of triangle t), each coordinate apart: contiguous sums
     fa, fb = f[:, i1].T.ravel(), f[:, i2].T.ravel()                      # half-edge tails and heads (3F)
     w3 = np.ascontiguousarray(w.T)                                      # (3,F)
@@ -366,9 +354,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
             e += float(np.sum(pw * (ln - pg) ** 2))
             b += pends @ ((pw * pg / ln)[:, None] * dab)
         if pull is not None:
-            t = p_target(uv)
-            e += float(p_w * np.sum((uv[pv] - t) ** 2))
-            np.add.at(b, pv, p_w * t)
+            e += _add_pull(pull, uv, b)
         energies.append(e)
         rhs = b[keep] - col_pin[:, None] * uv[pin][None, :]
         new = uv.copy()
@@ -394,6 +380,29 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
                 "arap_energy_relative": e_final / max(total_w, 1e-12),
                 "arap_energy_trace": [float(e) for e in energies[:: max(1, len(energies) // 10)]],
                 "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum()), "fallback_uv": fallback}
+
+
+def _arap_factor(factors: dict | None, f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float,
+                 boundary_only, pairs, pull) -> tuple:
+    """ARAP's factorised system (see _pinned_factor): the stored one (:func:`_stored_factor`), or with ``pull`` (see
+    :func:`_add_pull`) its proximal weight added on the pulled vertices' diagonal and factorised apart."""
+    if pull is None:
+        return _stored_factor(factors, f, w, nv, boundary_weight, boundary_only, pairs)
+    from scipy.sparse import coo_matrix
+
+    pv = np.asarray(pull[0], np.int64)
+    D = coo_matrix((np.full(len(pv), float(pull[1])), (pv, pv)), shape=(nv, nv))
+    return _pinned_factor((_system_matrix(f, w, nv, boundary_weight, boundary_only, pairs) + D).tocsc(), f)
+
+
+def _add_pull(pull: tuple, uv: np.ndarray, b: np.ndarray) -> float:
+    """The proximal term ``pull`` = (vertices (B,), weight, targets) of an ARAP step: weight x sum |uv_i - t_i|^2
+    (mm^2) with ``targets(uv)`` giving the targets t (B,2 mm) of this step (see :func:`push_apart`); adds weight x t
+    to the right-hand side b (V,2) and returns the term's energy."""
+    pv, p_w, p_target = pull
+    t = p_target(uv)
+    np.add.at(b, pv, p_w * t)
+    return float(p_w * np.sum((uv[pv] - t) ** 2))
 
 
 def _stored_factor(factors: dict | None, f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float,
