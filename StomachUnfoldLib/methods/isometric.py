@@ -1068,17 +1068,27 @@ class IsoSurface:
 
 def boundary_loops(f: np.ndarray) -> list:
     """Vertex sets (arrays) of the connected boundary components of a triangle mesh."""
-    from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    b = _boundary_edges(f)
-    if not len(b):
+    ids, g = _boundary_graph(f)
+    if not len(ids):
         return []
-    ids, inv = np.unique(b, return_inverse=True)
-    inv = inv.reshape(-1, 2)
-    g = coo_matrix((np.ones(len(b)), (inv[:, 0], inv[:, 1])), shape=(len(ids), len(ids)))
     n, lab = connected_components(g, directed=False)
     return [ids[lab == k] for k in range(n)]
+
+
+def _boundary_graph(f: np.ndarray) -> tuple[np.ndarray, object]:
+    """The boundary vertices (B,) of triangles f and their adjacency along the boundary edges (sparse B x B, both
+    directions, indices into them)."""
+    from scipy.sparse import coo_matrix
+
+    be = _boundary_edges(f)
+    ids, inv = np.unique(be, return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    n = len(ids)
+    A = coo_matrix((np.ones(2 * len(be)), (np.r_[inv[:, 0], inv[:, 1]], np.r_[inv[:, 1], inv[:, 0]])),
+                   shape=(n, n)).tocsr()
+    return ids, A
 
 
 def outside_scan(v: np.ndarray, ct, tol_voxels: float | None = None) -> np.ndarray:
@@ -1469,14 +1479,10 @@ def _similar_retry(cut, uv0, pairs, bonly, s: float, weight: float, current: tup
 def _boundary_reach(f: np.ndarray, hops: int) -> tuple[np.ndarray, object]:
     """The boundary vertices bv (B,) of triangles f and a sparse (B,B) matrix, nonzero where two of them lie within
     ``hops`` boundary edges of each other along the outline (a vertex's own stretch of its loop)."""
-    from scipy.sparse import coo_matrix, identity
+    from scipy.sparse import identity
 
-    be = _boundary_edges(f)
-    bv, inv = np.unique(be, return_inverse=True)
-    inv = inv.reshape(-1, 2)
+    bv, A = _boundary_graph(f)
     n = len(bv)
-    A = coo_matrix((np.ones(2 * len(be)), (np.r_[inv[:, 0], inv[:, 1]], np.r_[inv[:, 1], inv[:, 0]])),
-                   shape=(n, n)).tocsr()
     R = identity(n, format="csr")
     step = (A + identity(n, format="csr")).tocsr()
     for _ in range(hops):
@@ -1517,8 +1523,7 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, candidates: int = 16):
 
 
 def push_apart(v: np.ndarray, f: np.ndarray, uv: np.ndarray, pairs=None, boundary_only=None,
-               boundary_weight: float = 0.0, similar=None, check=None, steps: int | None = None,
-               weight: float | None = None) -> np.ndarray:
+               boundary_weight: float = 0.0, similar=None, check=None) -> np.ndarray:
     """A flat map (V,2 mm) whose folded flaps are pushed off the map they lie on (see PUSH_FROM_MM2): ARAP steps
     (its distance ``pairs``, straight boundary and as-similar ``similar`` region as for the map uv) with every
     boundary vertex held at a target that moves it out of any triangle it lies inside. ``check()`` is called between
@@ -1526,10 +1531,9 @@ def push_apart(v: np.ndarray, f: np.ndarray, uv: np.ndarray, pairs=None, boundar
     bv, reach = _boundary_reach(f, PUSH_SKIP)
     targets = _push_targets(f, bv, reach)
     tick = None if check is None else (lambda fraction: check())  # noqa: E731
-    out, _ = arap(v, f, uv, max_iter=PUSH_STEPS if steps is None else steps, tol=0.0, progress=tick,
-                  injective=False, pairs=pairs, boundary_weight=boundary_weight, boundary_only=boundary_only,
-                  similar=similar, scale_range=SIMILAR_SCALE,
-                  pull=(bv, PUSH_WEIGHT if weight is None else weight, targets))
+    out, _ = arap(v, f, uv, max_iter=PUSH_STEPS, tol=0.0, progress=tick, injective=False, pairs=pairs,
+                  boundary_weight=boundary_weight, boundary_only=boundary_only, similar=similar,
+                  scale_range=SIMILAR_SCALE, pull=(bv, PUSH_WEIGHT, targets))
     return out
 
 
