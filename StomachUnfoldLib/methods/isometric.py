@@ -1498,20 +1498,27 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, candidates: int = 16):
     from scipy.spatial import cKDTree
 
     k_out = int(reach.getnnz(axis=1).max()) + 8
+    nb_ = len(bv)
+    rows, cols = reach.nonzero()
+    near = np.sort(rows.astype(np.int64) * nb_ + cols)          # (row, column) pairs within reach, as sorted keys
+    f0, f1, f2 = f[:, 0], f[:, 1], f[:, 2]
 
     def targets(uv: np.ndarray) -> np.ndarray:
         t = uv[bv].copy()
-        P = uv[f]
-        c = P.mean(1)
+        c = (uv[f0] + uv[f1] + uv[f2]) / 3.0                      # the centroids, as uv[f].mean(1) to the bit
         _, nb = cKDTree(c, balanced_tree=False, compact_nodes=False).query(t, k=min(candidates, len(f)))
-        nb = nb.reshape(len(bv), -1)
-        inside = _inside_any(P, t, nb, (f[nb] == bv[:, None, None]).any(2))
+        nb = nb.reshape(nb_, -1)
+        corners = uv[f[nb]].reshape(-1, 3, 2)                     # only the candidates' corners
+        inside = _inside_any(corners, t, np.arange(len(corners)).reshape(nb.shape),
+                             (f[nb] == bv[:, None, None]).any(2))
         idx = np.flatnonzero(inside)
         if not len(idx):
             return t
-        _, j = cKDTree(t).query(t[idx], k=min(k_out, len(bv)))
+        _, j = cKDTree(t).query(t[idx], k=min(k_out, nb_))
         j = j.reshape(len(idx), -1)
-        far = np.asarray(reach[idx[:, None], j].todense()) == 0
+        key = idx[:, None].astype(np.int64) * nb_ + j
+        pos = np.minimum(np.searchsorted(near, key), len(near) - 1)
+        far = near[pos] != key
         has = far.any(1)
         first = np.argmax(far, axis=1)
         pick = j[np.arange(len(idx)), first]
