@@ -1513,6 +1513,7 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, near=None, candidates: i
     keys = np.sort(rows.astype(np.int64) * nb_ + cols)          # (row, column) pairs within reach, as sorted keys
     fn = f if near is None else f[near]
     tested = np.arange(nb_) if near is None else np.flatnonzero(np.isin(bv, fn))
+    own = bv[tested][:, None, None]
     f0, f1, f2 = fn[:, 0], fn[:, 1], fn[:, 2]
 
     def targets(uv: np.ndarray) -> np.ndarray:
@@ -1525,7 +1526,7 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, near=None, candidates: i
         nb = nb.reshape(len(tested), -1)
         corners = uv[fn[nb]].reshape(-1, 3, 2)                    # only the candidates' corners
         inside = _inside_any(corners, q, np.arange(len(corners)).reshape(nb.shape),
-                             (fn[nb] == bv[tested][:, None, None]).any(2))
+                             (fn[nb] == own).any(2))
         idx = tested[inside]
         if not len(idx):
             return t
