@@ -653,13 +653,13 @@ def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16, q
 def _inside_another(P: np.ndarray, c: np.ndarray, own: np.ndarray, nb: np.ndarray) -> np.ndarray:
     """Bool (Q,): the centroid c[own] (mm) lies strictly inside one of the triangles nb (Q,k indices into the
     corners P (F,3,2 mm)) other than itself."""
-    return _inside_any(P, c[own], nb, nb == own[:, None])
+    return _inside_any(P[nb], c[own], nb == own[:, None])
 
 
-def _inside_any(P: np.ndarray, q: np.ndarray, nb: np.ndarray, skip: np.ndarray) -> np.ndarray:
-    """Bool (Q,): the point q (Q,2 mm) lies strictly inside one of the triangles nb (Q,k indices into the corners
-    P (F,3,2 mm)) not marked in ``skip`` (Q,k)."""
-    a, b, d = P[nb, 0], P[nb, 1], P[nb, 2]                      # (Q,k,2)
+def _inside_any(corners: np.ndarray, q: np.ndarray, skip: np.ndarray) -> np.ndarray:
+    """Bool (Q,): the point q (Q,2 mm) lies strictly inside one of its k candidate triangles (``corners`` (Q,k,3,2
+    mm)) not marked in ``skip`` (Q,k)."""
+    a, b, d = corners[:, :, 0], corners[:, :, 1], corners[:, :, 2]   # (Q,k,2)
     q = q[:, None, :]
     den = (b[..., 0] - a[..., 0]) * (d[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (d[..., 0] - a[..., 0])
     den = np.where(np.abs(den) > 1e-12, den, np.nan)
@@ -1524,9 +1524,7 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, near=None, candidates: i
         c = (uv[f0] + uv[f1] + uv[f2]) / 3.0                      # the centroids, as uv[f].mean(1) to the bit
         _, nb = cKDTree(c, balanced_tree=False, compact_nodes=False).query(q, k=min(candidates, len(fn)))
         nb = nb.reshape(len(tested), -1)
-        corners = uv[fn[nb]].reshape(-1, 3, 2)                    # only the candidates' corners
-        inside = _inside_any(corners, q, np.arange(len(corners)).reshape(nb.shape),
-                             (fn[nb] == own).any(2))
+        inside = _inside_any(uv[fn[nb]], q, (fn[nb] == own).any(2))   # only the candidates' corners gathered
         idx = tested[inside]
         if not len(idx):
             return t
