@@ -326,35 +326,73 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     ends = _ends_matrix(fb, fa, nv)
     pends = _ends_matrix(pb, pa, nv) if pairs is not None else None
 
+    # the loop's arrays, written in place each step (the same operations, in the same order, as fresh arrays)
+    g0, g1, du0, du1, t3, r0, r1 = (np.empty((3, nf)) for _ in range(7))
+    gf0, gf1 = g0.reshape(-1), g1.reshape(-1)
+    ca, sa_, h, cs, sn = (np.empty(nf) for _ in range(5))
+    wr = np.empty((3 * nf, 2))                                          # w R dx of each half-edge, as one block
+    wr0, wr1 = wr[:, 0].reshape(3, nf), wr[:, 1].reshape(3, nf)
+    kept = np.flatnonzero(keep)
+
     def rotations(uv):
         """Current half-edge vectors and the rest edges turned by each triangle's closest rotation ((3,F) x, y mm)."""
         u0, u1 = np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1])
-        du0, du1 = (u0[fb] - u0[fa]).reshape(3, nf), (u1[fb] - u1[fa]).reshape(3, nf)
+        np.take(u0, fb, out=gf0)
+        np.take(u0, fa, out=gf1)
+        np.subtract(g0, g1, out=du0)
+        np.take(u1, fb, out=gf0)
+        np.take(u1, fa, out=gf1)
+        np.subtract(g0, g1, out=du1)
         # the closest rotation to S = sum_c w du dx^T: angle atan2(S10 - S01, S00 + S11), as (cos, sin)
-        p, q = du0 * wdx0 + du1 * wdx1, du1 * wdx0 - du0 * wdx1
-        ca, sa_ = p[0] + p[1] + p[2], q[0] + q[1] + q[2]
-        h = np.hypot(ca, sa_)
+        p, q = g0, g1                                                   # du0 wdx0 + du1 wdx1, du1 wdx0 - du0 wdx1
+        np.multiply(du0, wdx0, out=p)
+        np.multiply(du1, wdx1, out=t3)
+        p += t3
+        np.multiply(du1, wdx0, out=q)
+        np.multiply(du0, wdx1, out=t3)
+        q -= t3
+        np.add(p[0], p[1], out=ca)
+        np.add(ca, p[2], out=ca)
+        np.add(q[0], q[1], out=sa_)
+        np.add(sa_, q[2], out=sa_)
+        np.hypot(ca, sa_, out=h)
         zero = h == 0.0
         h[zero] = 1.0
-        cs, sn = ca / h, sa_ / h
+        np.divide(ca, h, out=cs)
+        np.divide(sa_, h, out=sn)
         cs[zero], sn[zero] = 1.0, 0.0
         if sim is not None:
             # as similar as possible there: the closest rotation times the best scale, held within scale_range
             sc = np.clip(h[sim] / sim_norm, *scale_range)
             cs[sim] *= sc
             sn[sim] *= sc
-        return du0, du1, cs * dx0 - sn * dx1, sn * dx0 + cs * dx1
+        np.multiply(cs, dx0, out=r0)
+        np.multiply(sn, dx1, out=t3)
+        np.subtract(r0, t3, out=r0)
+        np.multiply(sn, dx0, out=r1)
+        np.multiply(cs, dx1, out=t3)
+        np.add(r1, t3, out=r1)
+        return du0, du1, r0, r1
 
     def energy(du0, du1, r0, r1):
         """The ARAP energy sum w |du - R dx|^2 (mm^2)."""
-        return float(np.sum(w3 * ((du0 - r0) ** 2 + (du1 - r1) ** 2)))
+        d, t = g0, g1                                                   # free once the rotations are made
+        np.subtract(du0, r0, out=d)
+        np.square(d, out=d)
+        np.subtract(du1, r1, out=t)
+        np.square(t, out=t)
+        d += t
+        d *= w3
+        return float(np.sum(d))
 
     it = 0
     for it in range(1, max_iter + 1):
         du0, du1, r0, r1 = rotations(uv)
         e = energy(du0, du1, r0, r1)
         # global step: L u = b, b_head += w R dx, b_tail -= w R dx
-        b = ends @ np.stack([(w3 * r0).ravel(), (w3 * r1).ravel()], 1)
+        np.multiply(w3, r0, out=wr0)
+        np.multiply(w3, r1, out=wr1)
+        b = ends @ wr
         if pairs is not None:
             dab = uv[pb] - uv[pa]
             ln = np.maximum(np.linalg.norm(dab, axis=1), 1e-9)
@@ -363,9 +401,9 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         if pull is not None:
             e += _add_pull(pull, uv, b)
         energies.append(e)
-        rhs = b[keep] - col_pin[:, None] * uv[pin][None, :]
+        rhs = b[kept] - col_pin[:, None] * uv[pin][None, :]
         new = uv.copy()
-        new[keep] = lu.solve(np.ascontiguousarray(rhs))
+        new[kept] = lu.solve(rhs)
         if not np.all(np.isfinite(new)):
             raise SimulationError("the ARAP flat map diverged (non-finite coordinates); the surface mesh is broken")
         uv = new
