@@ -378,10 +378,20 @@ def tube_conformal(v: np.ndarray, f: np.ndarray, partner: np.ndarray, end_flag: 
     return np.stack([x[:nv], x[nv:]], 1)
 
 
+def sorted_edges(f: np.ndarray) -> np.ndarray:
+    """Each triangle's three edges (3F,2 vertex indices, the smaller first): corners (0,1) of every triangle, then
+    (1,2), then (2,0) (as np.sort(..., axis=1) of them, without a sort per row)."""
+    a = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    b = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    return np.stack([np.minimum(a, b), np.maximum(a, b)], 1)
+
+
 def signed_area_2d(uv: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Signed area (mm^2) of each triangle f of a flat map uv (V,2); positive when counter-clockwise."""
-    a, b, c = uv[f[:, 0]], uv[f[:, 1]], uv[f[:, 2]]
-    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+    x, y = uv[:, 0], uv[:, 1]                   # each coordinate gathered apart: contiguous arrays, the same sums
+    f0, f1, f2 = f[:, 0], f[:, 1], f[:, 2]
+    ax, ay = x[f0], y[f0]
+    return 0.5 * ((x[f1] - ax) * (y[f2] - ay) - (y[f1] - ay) * (x[f2] - ax))
 
 
 def rasterise(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float, prog: Progress,
@@ -393,8 +403,8 @@ def rasterise(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float
     bary = np.zeros((nj * ni, 3))
     hits = np.zeros(nj * ni, np.int32)
     P = uv[f] / s                                             # (F,3,2) in pixel units
-    lo = np.ceil(P.min(1) - 1e-9).astype(int)
-    hi = np.floor(P.max(1) + 1e-9).astype(int)
+    lo = np.ceil(np.minimum(np.minimum(P[:, 0], P[:, 1]), P[:, 2]) - 1e-9).astype(int)
+    hi = np.floor(np.maximum(np.maximum(P[:, 0], P[:, 1]), P[:, 2]) + 1e-9).astype(int)
     size = np.maximum(hi - lo + 1, 0)                         # (F,2) pixels per axis in each bbox
     key = np.maximum(size[:, 0], size[:, 1])
     order = np.argsort(key, kind="stable")
@@ -408,25 +418,26 @@ def rasterise(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float
         per = max(1, batch // (b * b))
         for a in range(0, len(ids), per):
             t_ids = ids[a:a + per]
-            pix = lo[t_ids][:, None, :] + off[None]          # (n, b*b, 2) integer (i, j)
+            pi = lo[t_ids, 0][:, None] + off[None, :, 0]     # (n, b*b) integer i, then j
+            pj = lo[t_ids, 1][:, None] + off[None, :, 1]
             tp = P[t_ids]
             v0 = tp[:, 1] - tp[:, 0]
             v1 = tp[:, 2] - tp[:, 0]
             den = v0[:, 0] * v1[:, 1] - v0[:, 1] * v1[:, 0]
             good_t = np.abs(den) > 1e-12
-            den = np.where(good_t, den, 1.0)
-            d = pix - tp[:, None, 0]
-            l1 = (d[..., 0] * v1[:, None, 1] - d[..., 1] * v1[:, None, 0]) / den[:, None]
-            l2 = (v0[:, None, 0] * d[..., 1] - v0[:, None, 1] * d[..., 0]) / den[:, None]
+            den = np.where(good_t, den, 1.0)[:, None]
+            di, dj = pi - tp[:, 0, 0][:, None], pj - tp[:, 0, 1][:, None]
+            l1 = (di * v1[:, 1][:, None] - dj * v1[:, 0][:, None]) / den
+            l2 = (v0[:, 0][:, None] * dj - v0[:, 1][:, None] * di) / den
             l0 = 1.0 - l1 - l2
-            eps = -1e-7
-            inside = (l0 >= eps) & (l1 >= eps) & (l2 >= eps) & good_t[:, None]
-            inside &= (pix[..., 0] >= 0) & (pix[..., 0] < ni) & (pix[..., 1] >= 0) & (pix[..., 1] < nj)
+            least = np.minimum(np.minimum(l0, l1), l2)
+            inside = (least >= -1e-7) & good_t[:, None]
+            inside &= (pi >= 0) & (pi < ni) & (pj >= 0) & (pj < nj)
             tt, kk = np.nonzero(inside)
-            lin = pix[tt, kk, 1] * ni + pix[tt, kk, 0]
+            lin = pj[tt, kk] * ni + pi[tt, kk]
             # hits count triangles holding the pixel centre strictly inside (not on a shared edge or vertex)
-            strict = np.minimum(np.minimum(l0[tt, kk], l1[tt, kk]), l2[tt, kk]) > 1e-3
-            np.add.at(hits, lin[strict], 1)
+            strict = least[tt, kk] > 1e-3
+            hits += np.bincount(lin[strict], minlength=len(hits)).astype(np.int32)
             tri[lin] = t_ids[tt]
             bary[lin] = np.stack([l0[tt, kk], l1[tt, kk], l2[tt, kk]], 1)
             prog((done + a + len(t_ids)) / len(f))
@@ -690,9 +701,12 @@ def _close_cracks(uv, f, tri, bary, s, covered):
         return
     gap, (nj_idx, ni_idx) = ndimage.distance_transform_edt(~covered, return_indices=True)
     lab, n = ndimage.label(enclosed)
-    widest = ndimage.maximum(gap, lab, index=np.arange(1, n + 1))
-    thin = np.isin(lab, 1 + np.flatnonzero(np.asarray(widest) <= CRACK_PX))
-    jj, ii = np.nonzero(thin)
+    inside = lab[enclosed]
+    widest = np.zeros(n + 1)                                    # each enclosed region's largest gap (pixels)
+    np.maximum.at(widest, inside, gap[enclosed])
+    thin_lab = widest <= CRACK_PX
+    thin_lab[0] = False
+    jj, ii = np.nonzero(thin_lab[lab])
     if not len(jj):
         return
     t = tri[nj_idx[jj, ii], ni_idx[jj, ii]]
@@ -718,7 +732,7 @@ def _outline_squares(uv, f, tri, bary, s, step_px: float = 0.5):
     nj, ni = tri.shape
     nf = len(f)
     ends = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])          # (3F, 2): corner c to c+1
-    key = np.sort(ends, 1) @ np.array([len(uv), 1], np.int64)
+    key = sorted_edges(f) @ np.array([len(uv), 1], np.int64)
     _, first, count = np.unique(key, return_index=True, return_counts=True)
     edge = first[count == 1]                                                  # outline edges (one triangle)
     if not len(edge):
@@ -737,8 +751,9 @@ def _outline_squares(uv, f, tri, bary, s, step_px: float = 0.5):
     ok = tri[pix[:, 1], pix[:, 0]] < 0
     if not ok.any():
         return
-    pair = np.unique(np.stack([pix[ok, 1] * ni + pix[ok, 0], e[ok]], 1), axis=0)  # (pixel, edge) once each
-    lin, e = pair[:, 0], pair[:, 1]
+    ne = len(edge)
+    pair = np.unique((pix[ok, 1] * ni + pix[ok, 0]) * ne + e[ok])       # (pixel, edge) once each, by pixel then edge
+    lin, e = pair // ne, pair % ne
     centre = np.stack([lin % ni, lin // ni], 1).astype(float)
     d = b[e] - a[e]
     # the part [t0, t1] of each edge inside the pixel's square (Liang-Barsky), empty when t0 > t1

@@ -34,7 +34,7 @@ from ..frontend import timed_stage
 from ..params import SurfaceParameters
 from ..spare_core import Beside
 from ..surface import (compact, cut_surface, inner_surface, largest_component, orient_and_scale, perpendicular,
-                       sample_flat_map, signed_area_2d, smooth_tangents, unit, vertex_normals)
+                       sample_flat_map, signed_area_2d, smooth_tangents, sorted_edges, unit, vertex_normals)
 from . import Method, Unfolding, register
 
 __all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "largest_defect_mm2",
@@ -666,7 +666,7 @@ def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1
 def _edge_ids(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unique undirected edges (E,2) of triangles f and each triangle's edges as indices into them ((3,F): row c the
     edge from corner c to corner c+1): a subset's edge counts are then one bincount, not a sort."""
-    ee = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    ee = sorted_edges(f)
     ue, inv = _unique_rows(ee, return_inverse=True)
     return ue, inv.reshape(3, -1)
 
@@ -707,15 +707,24 @@ def _inside_any(corners: np.ndarray, q: np.ndarray, skip: np.ndarray) -> np.ndar
     return (inside & ~skip).any(1)
 
 
-def nearest_alive(tree, c: np.ndarray, own: np.ndarray, alive: np.ndarray, k: int) -> np.ndarray:
+def nearest_alive(tree, c: np.ndarray, own: np.ndarray, alive: np.ndarray, k: int,
+                  known: np.ndarray | None = None) -> np.ndarray:
     """The k triangles nearest to the centroids c[own] (mm) among those still ``alive`` (bool (F,)), nearest first
-    ((Q,k) indices): one k-d tree of every centroid (``tree``) asked for more neighbours where dropped ones crowd."""
+    ((Q,k) indices): one k-d tree of every centroid (``tree``) asked for more neighbours where dropped ones crowd.
+    ``known`` (F, min(F, 2k), -1 where not yet asked): each centroid's nearest, kept between calls over one tree and
+    filled here (the tree is asked once per centroid, not once per call)."""
     out = np.empty((len(own), k), np.int64)
     todo = np.arange(len(own))
     K = min(len(c), 2 * k)
     while len(todo):
-        _, nb = tree.query(c[own[todo]], k=K)
-        nb = nb.reshape(len(todo), -1)
+        if known is not None and K == known.shape[1]:
+            ask = own[todo][known[own[todo], 0] < 0]
+            if len(ask):
+                known[ask] = tree.query(c[ask], k=K)[1].reshape(len(ask), -1)
+            nb = known[own[todo]]
+        else:
+            _, nb = tree.query(c[own[todo]], k=K)
+            nb = nb.reshape(len(todo), -1)
         ok = np.zeros(nb.shape, bool)
         found = nb < len(c)
         ok[found] = alive[nb[found]]
@@ -738,21 +747,27 @@ def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40, return_droppe
 
     ue, eid = _edge_ids(f)
     P = uv[f]                                                   # the map does not move while peeling: one tree
-    c = P.mean(1)
+    c = (P[:, 0] + P[:, 1] + P[:, 2]) / 3.0                     # the centroids, as P.mean(1) to the bit
     tree = cKDTree(c) if len(f) else None
     alive, alive_mask, dropped = np.arange(len(f)), np.ones(len(f), bool), []
+    count = np.bincount(eid.ravel(), minlength=len(ue))          # the alive triangles on each edge
+    known = None
     for _ in range(rounds):
         if len(alive) < 2:
             break
-        e = eid[:, alive]
+        k = min(candidates, len(alive))
+        if known is None or known.shape[1] != min(len(c), 2 * k):
+            known = np.full((len(f), min(len(c), 2 * k)), -1, np.int64)
         # only boundary triangles are peeled: test those
-        own = alive[(np.bincount(e.ravel(), minlength=len(ue))[e] == 1).any(0)]
+        one = count[eid[:, alive]] == 1
+        own = alive[one[0] | one[1] | one[2]]
         if not len(own):
             break
-        drop = own[_inside_another(P, c, own, nearest_alive(tree, c, own, alive_mask, min(candidates, len(alive))))]
+        drop = own[_inside_another(P, c, own, nearest_alive(tree, c, own, alive_mask, k, known))]
         if len(drop) == 0:
             break
         alive_mask[drop] = False
+        np.subtract.at(count, eid[:, drop].ravel(), 1)
         dropped.append(f[drop])
         alive = np.flatnonzero(alive_mask)
     if return_dropped:
@@ -1056,12 +1071,12 @@ def cut_along_path(v: np.ndarray, f: np.ndarray, path: np.ndarray, ends_on_bound
 
 def _edges(f: np.ndarray) -> np.ndarray:
     """Unique undirected edges (E,2) of triangles f."""
-    return _unique_rows(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1))
+    return _unique_rows(sorted_edges(f))
 
 
 def _boundary_edges(f: np.ndarray) -> np.ndarray:
     """Edges (B,2) of triangles f that only one triangle has: the mesh's boundary."""
-    ue, cnt = _unique_rows(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1),
+    ue, cnt = _unique_rows(sorted_edges(f),
                            return_counts=True)
     return ue[cnt == 1]
 
@@ -1369,7 +1384,7 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
         theta[x] = theta[p_] + np.mod(th[x] - theta[p_] + np.pi, 2 * np.pi) - np.pi
     theta -= theta.min()
     progress(0.9)
-    edges2 = np.sort(np.concatenate([f2[:, [0, 1]], f2[:, [1, 2]], f2[:, [2, 0]]]), axis=1)
+    edges2 = sorted_edges(f2)
     ue, cnt = _unique_rows(edges2, return_counts=True)
     euler = len(v2) - len(ue) + len(f2)
     bnd = ue[cnt == 1]
