@@ -313,86 +313,16 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     if np.sum(signed_area_2d(uv, f)[good] > 0) < 0.5 * good.sum():
         uv[:, 1] *= -1.0
     iterates, energies = [], []  # every iterate (the latest whose free boundary does not cross is found last); energies
-    # half-edges c-major (index c * F + t: half-edge c of triangle t), each coordinate apart: contiguous sums
-    fa, fb = f[:, i1].T.ravel(), f[:, i2].T.ravel()                      # half-edge tails and heads (3F)
-    w3 = np.ascontiguousarray(w.T)                                      # (3,F)
-    dx0, dx1 = np.ascontiguousarray(dx[:, :, 0].T), np.ascontiguousarray(dx[:, :, 1].T)   # rest edges (3,F)
-    wdx0, wdx1 = w3 * dx0, w3 * dx1
-    sim = None
-    if similar is not None and np.any(similar):
-        sim = np.flatnonzero(np.asarray(similar, bool))
-        sim_norm = np.maximum((w3 * (dx0 ** 2 + dx1 ** 2)).sum(0)[sim], 1e-12)
-    # b_head += c, b_tail -= c for the half-edges' vectors c (3F): one sparse product
-    ends = _ends_matrix(fb, fa, nv)
+    local = _LocalStep(f, i1, i2, w, dx, nv, similar, scale_range)
+    rotations, energy = local.rotations, local.energy
     pends = _ends_matrix(pb, pa, nv) if pairs is not None else None
-
-    # the loop's arrays, written in place each step (the same operations, in the same order, as fresh arrays)
-    g0, g1, du0, du1, t3, r0, r1 = (np.empty((3, nf)) for _ in range(7))
-    gf0, gf1 = g0.reshape(-1), g1.reshape(-1)
-    ca, sa_, h, cs, sn = (np.empty(nf) for _ in range(5))
-    wr = np.empty((3 * nf, 2))                                          # w R dx of each half-edge, as one block
-    wr0, wr1 = wr[:, 0].reshape(3, nf), wr[:, 1].reshape(3, nf)
     kept = np.flatnonzero(keep)
-
-    def rotations(uv):
-        """Current half-edge vectors and the rest edges turned by each triangle's closest rotation ((3,F) x, y mm)."""
-        u0, u1 = np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1])
-        np.take(u0, fb, out=gf0)
-        np.take(u0, fa, out=gf1)
-        np.subtract(g0, g1, out=du0)
-        np.take(u1, fb, out=gf0)
-        np.take(u1, fa, out=gf1)
-        np.subtract(g0, g1, out=du1)
-        # the closest rotation to S = sum_c w du dx^T: angle atan2(S10 - S01, S00 + S11), as (cos, sin)
-        p, q = g0, g1                                                   # du0 wdx0 + du1 wdx1, du1 wdx0 - du0 wdx1
-        np.multiply(du0, wdx0, out=p)
-        np.multiply(du1, wdx1, out=t3)
-        p += t3
-        np.multiply(du1, wdx0, out=q)
-        np.multiply(du0, wdx1, out=t3)
-        q -= t3
-        np.add(p[0], p[1], out=ca)
-        np.add(ca, p[2], out=ca)
-        np.add(q[0], q[1], out=sa_)
-        np.add(sa_, q[2], out=sa_)
-        np.hypot(ca, sa_, out=h)
-        zero = h == 0.0
-        h[zero] = 1.0
-        np.divide(ca, h, out=cs)
-        np.divide(sa_, h, out=sn)
-        cs[zero], sn[zero] = 1.0, 0.0
-        if sim is not None:
-            # as similar as possible there: the closest rotation times the best scale, held within scale_range
-            sc = np.clip(h[sim] / sim_norm, *scale_range)
-            cs[sim] *= sc
-            sn[sim] *= sc
-        np.multiply(cs, dx0, out=r0)
-        np.multiply(sn, dx1, out=t3)
-        np.subtract(r0, t3, out=r0)
-        np.multiply(sn, dx0, out=r1)
-        np.multiply(cs, dx1, out=t3)
-        np.add(r1, t3, out=r1)
-        return du0, du1, r0, r1
-
-    def energy(du0, du1, r0, r1):
-        """The ARAP energy sum w |du - R dx|^2 (mm^2)."""
-        d, t = g0, g1                                                   # free once the rotations are made
-        np.subtract(du0, r0, out=d)
-        np.square(d, out=d)
-        np.subtract(du1, r1, out=t)
-        np.square(t, out=t)
-        d += t
-        d *= w3
-        return float(np.sum(d))
 
     it = 0
     for it in range(1, max_iter + 1):
         du0, du1, r0, r1 = rotations(uv)
         e = energy(du0, du1, r0, r1)
-        # global step: L u = b, b_head += w R dx, b_tail -= w R dx
-        np.multiply(w3, r0, out=wr0)
-        np.multiply(w3, r1, out=wr1)
-        b = ends @ wr
+        b = local.right_side(r0, r1)            # global step: L u = b, b_head += w R dx, b_tail -= w R dx
         if pairs is not None:
             dab = uv[pb] - uv[pa]
             ln = np.maximum(np.linalg.norm(dab, axis=1), 1e-9)
@@ -420,11 +350,94 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     sa = signed_area_2d(uv, f)
     major = np.sign(np.sum(np.sign(sa[good]))) or 1.0
     flipped = int(np.sum((np.sign(sa) != major) & good))
-    total_w = float(np.sum(w3 * (dx0 ** 2 + dx1 ** 2)))
+    total_w = float(np.sum(local.w3 * (local.dx0 ** 2 + local.dx1 ** 2)))
     return uv, {"arap_iterations": it, "arap_stopped_before_overlap": overlap_stop, "arap_energy": e_final,
                 "arap_energy_relative": e_final / max(total_w, 1e-12),
                 "arap_energy_trace": [float(e) for e in energies[:: max(1, len(energies) // 10)]],
                 "flipped_triangles": flipped, "degenerate_triangles": int((~good).sum()), "fallback_uv": fallback}
+
+
+class _LocalStep:
+    """ARAP's local step over the half-edges of triangles f (see :func:`arap`), its arrays kept and written in place
+    each step (the same operations, in the same order, as fresh arrays: the same maps to the bit). Half-edges are
+    c-major (index c * F + t: half-edge c of triangle t), each coordinate apart: contiguous sums."""
+
+    def __init__(self, f, i1, i2, w, dx, nv: int, similar, scale_range):
+        nf = len(f)
+        self.fa, self.fb = f[:, i1].T.ravel(), f[:, i2].T.ravel()          # half-edge tails and heads (3F)
+        self.w3 = w3 = np.ascontiguousarray(w.T)                          # (3,F)
+        self.dx0, self.dx1 = np.ascontiguousarray(dx[:, :, 0].T), np.ascontiguousarray(dx[:, :, 1].T)  # rest (3,F)
+        self.wdx0, self.wdx1 = w3 * self.dx0, w3 * self.dx1
+        self.sim = None
+        if similar is not None and np.any(similar):
+            self.sim = np.flatnonzero(np.asarray(similar, bool))
+            self.sim_norm = np.maximum((w3 * (self.dx0 ** 2 + self.dx1 ** 2)).sum(0)[self.sim], 1e-12)
+            self.scale_range = scale_range
+        self.ends = _ends_matrix(self.fb, self.fa, nv)   # b_head += c, b_tail -= c for half-edge vectors c: one product
+        self.g0, self.g1, self.du0, self.du1, self.t3, self.r0, self.r1 = (np.empty((3, nf)) for _ in range(7))
+        self.ca, self.sa, self.h, self.cs, self.sn = (np.empty(nf) for _ in range(5))
+        self.wr = np.empty((3 * nf, 2))                                   # w R dx of each half-edge, as one block
+
+    def rotations(self, uv: np.ndarray) -> tuple:
+        """Current half-edge vectors and the rest edges turned by each triangle's closest rotation ((3,F) x, y mm)."""
+        g0, g1, du0, du1, t3, r0, r1 = self.g0, self.g1, self.du0, self.du1, self.t3, self.r0, self.r1
+        ca, sa, h, cs, sn = self.ca, self.sa, self.h, self.cs, self.sn
+        u0, u1 = np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1])
+        gf0, gf1 = g0.reshape(-1), g1.reshape(-1)
+        np.take(u0, self.fb, out=gf0)
+        np.take(u0, self.fa, out=gf1)
+        np.subtract(g0, g1, out=du0)
+        np.take(u1, self.fb, out=gf0)
+        np.take(u1, self.fa, out=gf1)
+        np.subtract(g0, g1, out=du1)
+        # the closest rotation to S = sum_c w du dx^T: angle atan2(S10 - S01, S00 + S11), as (cos, sin)
+        p, q = g0, g1                                                   # du0 wdx0 + du1 wdx1, du1 wdx0 - du0 wdx1
+        np.multiply(du0, self.wdx0, out=p)
+        np.multiply(du1, self.wdx1, out=t3)
+        p += t3
+        np.multiply(du1, self.wdx0, out=q)
+        np.multiply(du0, self.wdx1, out=t3)
+        q -= t3
+        np.add(p[0], p[1], out=ca)
+        ca += p[2]
+        np.add(q[0], q[1], out=sa)
+        sa += q[2]
+        np.hypot(ca, sa, out=h)
+        zero = h == 0.0
+        h[zero] = 1.0
+        np.divide(ca, h, out=cs)
+        np.divide(sa, h, out=sn)
+        cs[zero], sn[zero] = 1.0, 0.0
+        if self.sim is not None:
+            # as similar as possible there: the closest rotation times the best scale, held within scale_range
+            sc = np.clip(h[self.sim] / self.sim_norm, *self.scale_range)
+            cs[self.sim] *= sc
+            sn[self.sim] *= sc
+        np.multiply(cs, self.dx0, out=r0)
+        np.multiply(sn, self.dx1, out=t3)
+        r0 -= t3
+        np.multiply(sn, self.dx0, out=r1)
+        np.multiply(cs, self.dx1, out=t3)
+        r1 += t3
+        return du0, du1, r0, r1
+
+    def energy(self, du0, du1, r0, r1) -> float:
+        """The ARAP energy sum w |du - R dx|^2 (mm^2)."""
+        d, t = self.g0, self.g1                                         # free once the rotations are made
+        np.subtract(du0, r0, out=d)
+        np.square(d, out=d)
+        np.subtract(du1, r1, out=t)
+        np.square(t, out=t)
+        d += t
+        d *= self.w3
+        return float(np.sum(d))
+
+    def right_side(self, r0, r1) -> np.ndarray:
+        """The global step's right-hand side (V,2 mm) from the turned rest edges: b_head += w R dx, b_tail -= w R dx."""
+        nf = r0.shape[1]
+        np.multiply(self.w3, r0, out=self.wr[:, 0].reshape(3, nf))
+        np.multiply(self.w3, r1, out=self.wr[:, 1].reshape(3, nf))
+        return self.ends @ self.wr
 
 
 def _arap_factor(factors: dict | None, f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float,
