@@ -404,8 +404,8 @@ def signed_area_2d(uv: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Signed area (mm^2) of each triangle f of a flat map uv (V,2); positive when counter-clockwise."""
     x, y = uv[:, 0], uv[:, 1]                   # each coordinate gathered apart: contiguous arrays, the same sums
     f0, f1, f2 = f[:, 0], f[:, 1], f[:, 2]
-    ax, ay = x[f0], y[f0]
-    return 0.5 * ((x[f1] - ax) * (y[f2] - ay) - (y[f1] - ay) * (x[f2] - ax))
+    ax, ay = np.take(x, f0), np.take(y, f0)
+    return 0.5 * ((np.take(x, f1) - ax) * (np.take(y, f2) - ay) - (np.take(y, f1) - ay) * (np.take(x, f2) - ax))
 
 
 def rasterise(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float, prog: Progress,
@@ -416,7 +416,7 @@ def rasterise(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float
     tri = np.full(nj * ni, -1, np.int64)
     bary = np.zeros((nj * ni, 3))
     hits = np.zeros(nj * ni, np.int32)
-    P = uv[f] / s                                             # (F,3,2) in pixel units
+    P = np.take(uv, f, axis=0) / s                            # (F,3,2) in pixel units
     lo = np.ceil(np.minimum(np.minimum(P[:, 0], P[:, 1]), P[:, 2]) - 1e-9).astype(int)
     hi = np.floor(np.maximum(np.maximum(P[:, 0], P[:, 1]), P[:, 2]) + 1e-9).astype(int)
     size = np.maximum(hi - lo + 1, 0)                         # (F,2) pixels per axis in each bbox

@@ -316,7 +316,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     local = _LocalStep(f, i1, i2, w, dx, nv, similar, scale_range)
     rotations, energy = local.rotations, local.energy
     pends = _ends_matrix(pb, pa, nv) if pairs is not None else None
-    kept = np.flatnonzero(keep)
+    kept = np.flatnonzero(keep)                                        # every vertex but the pinned one
 
     it = 0
     for it in range(1, max_iter + 1):
@@ -324,16 +324,17 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         e = energy(du0, du1, r0, r1)
         b = local.right_side(r0, r1)            # global step: L u = b, b_head += w R dx, b_tail -= w R dx
         if pairs is not None:
-            dab = uv[pb] - uv[pa]
+            dab = np.take(uv, pb, axis=0) - np.take(uv, pa, axis=0)   # np.take: uv[pb] without the index machinery
             ln = np.maximum(np.linalg.norm(dab, axis=1), 1e-9)
             e += float(np.sum(pw * (ln - pg) ** 2))
             b += pends @ ((pw * pg / ln)[:, None] * dab)
         if pull is not None:
             e += _add_pull(pull, uv, b)
         energies.append(e)
-        rhs = b[kept] - col_pin[:, None] * uv[pin][None, :]
-        new = uv.copy()
-        new[kept] = lu.solve(rhs)
+        rhs = np.take(b, kept, axis=0) - col_pin[:, None] * uv[pin][None, :]
+        sol = lu.solve(rhs)
+        new = np.empty_like(uv)                 # the solved vertices round the pinned one: slices, not a scatter
+        new[:pin], new[pin], new[pin + 1:] = sol[:pin], uv[pin], sol[pin:]
         if not np.all(np.isfinite(new)):
             raise SimulationError("the ARAP flat map diverged (non-finite coordinates); the surface mesh is broken")
         uv = new
@@ -657,8 +658,9 @@ def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1
     """
     ue, eid = _edge_ids(f)
     # neither map moves while peeling: each edge's stretch and each triangle's signed area are computed once
-    long_all = (np.linalg.norm(uv[ue[:, 0]] - uv[ue[:, 1]], axis=1)
-                > limit * np.linalg.norm(v[ue[:, 0]] - v[ue[:, 1]], axis=1))[eid].any(0)
+    a, b = ue[:, 0], ue[:, 1]
+    long_all = (np.linalg.norm(np.take(uv, a, axis=0) - np.take(uv, b, axis=0), axis=1)
+                > limit * np.linalg.norm(np.take(v, a, axis=0) - np.take(v, b, axis=0), axis=1))[eid].any(0)
     sa_all = signed_area_2d(uv, f)
     alive = np.arange(len(f))
     for _ in range(rounds):
@@ -759,7 +761,7 @@ def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40, return_droppe
     from scipy.spatial import cKDTree
 
     ue, eid = _edge_ids(f)
-    P = uv[f]                                                   # the map does not move while peeling: one tree
+    P = np.take(uv, f, axis=0)                                  # the map does not move while peeling: one tree
     c = (P[:, 0] + P[:, 1] + P[:, 2]) / 3.0                     # the centroids, as P.mean(1) to the bit
     tree = cKDTree(c) if len(f) else None
     alive, alive_mask, dropped = np.arange(len(f)), np.ones(len(f), bool), []
@@ -985,8 +987,9 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
     for n in range(rounds):
         for k in range(2):
             yk = np.ascontiguousarray(y[:, k])
-            E[:, k, 0] = yk[f1] - yk[f0]
-            E[:, k, 1] = yk[f2] - yk[f0]
+            y0 = np.take(yk, f0)
+            E[:, k, 0] = np.take(yk, f1) - y0
+            E[:, k, 1] = np.take(yk, f2) - y0
         J = E @ Ainv
         s1, s2, det = _singular_values(J)
         s2 = s2 * np.sign(det) * orientation                            # < 0: turned over
@@ -1591,14 +1594,14 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, near=None, candidates: i
     f0, f1, f2 = fn[:, 0], fn[:, 1], fn[:, 2]
 
     def targets(uv: np.ndarray) -> np.ndarray:
-        t = uv[bv].copy()
+        t = np.take(uv, bv, axis=0)                               # np.take: uv[bv] without the index machinery
         if not len(tested):
             return t
-        q = t[tested]
-        c = (uv[f0] + uv[f1] + uv[f2]) / 3.0                      # the centroids, as uv[f].mean(1) to the bit
+        q = np.take(t, tested, axis=0)
+        c = (np.take(uv, f0, axis=0) + np.take(uv, f1, axis=0) + np.take(uv, f2, axis=0)) / 3.0   # uv[f].mean(1)
         _, nb = cKDTree(c, balanced_tree=False, compact_nodes=False).query(q, k=min(candidates, len(fn)))
-        nb = nb.reshape(len(tested), -1)
-        inside = _inside_any(uv[fn[nb]], q, (fn[nb] == own).any(2))   # only the candidates' corners gathered
+        corners = np.take(fn, nb.reshape(len(tested), -1), axis=0)              # (Q,k,3) vertex indices
+        inside = _inside_any(np.take(uv, corners, axis=0), q, (corners == own).any(2))   # only their corners
         idx = tested[inside]
         if not len(idx):
             return t
