@@ -774,6 +774,23 @@ def test_nearest_alive_triangles_are_the_nearest_among_those_left():
     want = left[np.argsort(d, axis=1, kind="stable")[:, :16]]
     np.testing.assert_array_equal(np.sort(got, 1), np.sort(want, 1))
     assert alive[got].all()
+    # the tree asked once per centroid: its answers kept between calls give the same triangles as asking again
+    known = np.full((len(c), 32), -1, np.int64)
+    np.testing.assert_array_equal(nearest_alive(cKDTree(c), c, own, alive, 16, known), got)
+    assert (known[own, 0] >= 0).all() and (np.delete(known, own, axis=0) == -1).all()
+    fewer = alive.copy()
+    fewer[own[::3]] = False                                  # later rounds: more of them dropped
+    np.testing.assert_array_equal(nearest_alive(cKDTree(c), c, own, fewer, 16, known),
+                                  nearest_alive(cKDTree(c), c, own, fewer, 16))
+
+
+def test_sorted_edges_are_each_triangles_edges_smaller_vertex_first():
+    from StomachUnfoldLib.surface import sorted_edges
+
+    f = np.random.default_rng(2).integers(0, 50, size=(40, 3))
+    e = sorted_edges(f)
+    np.testing.assert_array_equal(e, np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1))
+    assert e.dtype == f.dtype and e.shape == (120, 2)
 
 
 def test_arap_uses_a_stored_factorisation_only_for_the_same_system():

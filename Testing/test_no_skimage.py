@@ -272,3 +272,24 @@ def test_the_inner_surface_blurs_only_the_voxels_its_step_reads_with_the_same_va
         np.testing.assert_array_equal(f, f0)
         np.testing.assert_array_equal(v, crop.index_to_lps(v0[:, ::-1] - 2.0))
         assert len(f) > 50
+
+
+def test_the_gas_field_is_the_lumens_one_voxel_band_of_hu_blurred_even_where_the_lumen_meets_the_grid_edge():
+    from scipy import ndimage
+
+    from StomachUnfoldLib.geometry import Volume
+    from StomachUnfoldLib.surface import SURFACE_SIGMA_VOX, surface_field
+
+    rng = np.random.default_rng(11)
+    k, j, i = np.mgrid[:23, :19, :17]
+    # the lumen runs off three faces of the grid, with a few loose voxels beside it
+    lumen = ((k - 2) / 12.0) ** 2 + ((j - 9) / 11.0) ** 2 + ((i - 16) / 8.0) ** 2 < 1.0
+    lumen |= rng.uniform(size=lumen.shape) > 0.985
+    hu = rng.integers(-1000, 300, lumen.shape).astype(np.int16)
+    crop = Volume(hu, np.array([0.8, 0.8, 2.0]), np.zeros(3), np.eye(3))
+    field, level = surface_field(crop, lumen, mask_given=False)
+    band = ndimage.maximum_filter(lumen.view(np.uint8), size=3, mode="constant", cval=0) > 0
+    want = ndimage.gaussian_filter(np.where(band, hu.astype(np.float32), np.float32(200.0)), SURFACE_SIGMA_VOX)
+    assert level == -500.0 and field.dtype == np.float32
+    np.testing.assert_array_equal(field, want)                      # to the bit
+    assert band.sum() > lumen.sum() > 100
