@@ -10,7 +10,6 @@ stomach mask -> crop -> centreline -> incision line; the wall region when the me
 """
 from __future__ import annotations
 
-import importlib
 import os
 import resource
 import secrets
@@ -227,13 +226,6 @@ def _cut_by_scan(ct: Volume, prep) -> tuple:
     return tuple(which for which, at_edge, sl in edges if at_edge and bool(np.any(prep.lumen[sl])))
 
 
-#: modules a run imports after the method (the grade, the warnings, the outputs' files): see :func:`unfold`
-LATE_MODULES = ("StomachUnfoldLib.incision_line", "StomachUnfoldLib.wall_model", "StomachUnfoldLib.quality",
-                "StomachUnfoldLib.plausibility", "StomachUnfoldLib.distortion", "StomachUnfoldLib.figure",
-                "vtkmodules.vtkIOImage", "vtkmodules.vtkIOXML", "vtkmodules.vtkRenderingCore",
-                "vtkmodules.vtkRenderingFreeType", "concurrent.futures.thread")
-
-
 def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None = None,
            mask: np.ndarray | None = None, incision_curve_lps=None, progress=None) -> UnfoldResult:
     """Unfold the stomach of CT ``ct`` (HU) between the cardia and pylorus points (LPS mm); returns UnfoldResult.
@@ -250,8 +242,6 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
     with (Beside(ct.array.scan, params.air_threshold_hu) if on_file else nullcontext()) as scan:
         params.validate()
         method = get_method(params.method)
-        for name in (*method.modules, *LATE_MODULES):   # imported now, beside the scan, not later on the way
-            importlib.import_module(name)
         scan_s = scan.result() if on_file else 0.0
     prog = progress if isinstance(progress, Progress) else Progress(progress)
     span = {name: (lo, hi) for name, lo, hi in STAGES}

@@ -183,15 +183,3 @@ def test_a_stomach_cut_off_by_the_scan_range_is_said_in_the_warnings():
     assert not any("first slice" in x or "point lies on" in x for x in w)
     whole = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], TINY).report["warnings"]
     assert not any("slice of the scan" in x for x in whole)
-
-
-def test_the_modules_a_run_loads_beside_the_scan_exist():
-    import importlib
-
-    from StomachUnfoldLib.methods import get_method, method_names
-    from StomachUnfoldLib.pipeline import LATE_MODULES
-
-    names = {m for n in method_names() for m in get_method(n).modules} | set(LATE_MODULES)
-    assert "StomachUnfoldLib.isosurface" in names and "StomachUnfoldLib.quality" in names
-    for name in sorted(names):
-        assert importlib.import_module(name).__name__ == name

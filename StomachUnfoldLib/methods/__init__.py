@@ -80,8 +80,6 @@ class Method:
     description = ""
     #: report name of the stages this method reports, with their share of its progress, for the progress bar
     stages: tuple = ()
-    #: modules the method imports as it runs: loaded first, while a CT on file is scanned (see pipeline.unfold)
-    modules: tuple = ()
 
     def unfold(self, prep, progress) -> Unfolding:
         """Unfold the prepared stomach (LPS mm) into an Unfolding."""

@@ -1430,8 +1430,6 @@ class IsometricFlattening(Method):
     name = "isometric"
     description = "as-rigid-as-possible (near-isometric) flattening of the cut-open inner wall"
     stages = (("surface", 0.3), ("flat map", 0.3), ("volume", 0.4))
-    modules = ("scipy.sparse.linalg", "scipy.sparse.csgraph", "scipy.spatial", "vtkmodules.util.numpy_support",
-               "vtkmodules.vtkCommonDataModel", "vtkmodules.vtkFiltersCore", "StomachUnfoldLib.isosurface")
 
     def unfold(self, prep, progress) -> Unfolding:
         """Cut the inner wall open along the incision, flatten it near-isometrically, sample the CT along normals."""
