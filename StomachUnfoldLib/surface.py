@@ -521,7 +521,7 @@ def cut_surface(prep, max_vertices: int = 20000, warnings: list | None = None) -
     e2 = np.cross(Td[near], e1)
     rad = perpendicular(radial, Td[near])
     # the two openings: boundary vertices of the trimmed (uncut) tube, by their position along the centreline
-    e_all = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    e_all = sorted_edges(f)
     ue0, cnt0 = np.unique(e_all, axis=0, return_counts=True)
     open_v = np.unique(ue0[cnt0 == 1])
     end_flag = np.zeros(len(v), np.int8)
@@ -552,7 +552,7 @@ def cut_surface(prep, max_vertices: int = 20000, warnings: list | None = None) -
     v, f, vn, near, theta, is_copy, end_flag, partner = compact(v, f, vn, near, theta, is_copy, end_flag, partner)
     partner[~is_copy] = -1                               # only copies point to their original
     # topology: a disc has Euler characteristic 1 and a single boundary loop
-    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    edges = sorted_edges(f)
     ue, cnt = np.unique(edges, axis=0, return_counts=True)
     euler = len(v) - len(ue) + len(f)
     bnd = ue[cnt == 1]

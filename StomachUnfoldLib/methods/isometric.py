@@ -678,6 +678,12 @@ def peel_boundary(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float = 1
     return f[alive], len(f) - len(alive)
 
 
+def _centroids(x: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """The centroids (F,D, mm) of triangles f of points x (V,D mm): ``x[f].mean(1)`` to the bit, by three np.take
+    gathers (numpy's fancy indexing of rows is several times slower and holds the interpreter lock)."""
+    return (np.take(x, f[:, 0], axis=0) + np.take(x, f[:, 1], axis=0) + np.take(x, f[:, 2], axis=0)) / 3.0
+
+
 def _edge_ids(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unique undirected edges (E,2) of triangles f and each triangle's edges as indices into them ((3,F): row c the
     edge from corner c to corner c+1): a subset's edge counts are then one bincount, not a sort."""
@@ -696,8 +702,8 @@ def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16, q
     n_q = len(f) if query is None else len(query)
     if len(f) < 2 or n_q == 0:
         return np.zeros(n_q, bool)
-    P = uv[f]                                                   # (F,3,2)
-    c = P.mean(1)
+    P = np.take(uv, f, axis=0)                                  # (F,3,2)
+    c = _centroids(uv, f)
     own = np.arange(len(f)) if query is None else np.asarray(query, int)
     _, nb = cKDTree(c).query(c[own], k=min(candidates, len(f)))  # (Q,k) nearby triangles
     return _inside_another(P, c, own, nb.reshape(len(own), -1))
@@ -706,7 +712,7 @@ def overlapping_triangles(f: np.ndarray, uv: np.ndarray, candidates: int = 16, q
 def _inside_another(P: np.ndarray, c: np.ndarray, own: np.ndarray, nb: np.ndarray) -> np.ndarray:
     """Bool (Q,): the centroid c[own] (mm) lies strictly inside one of the triangles nb (Q,k indices into the
     corners P (F,3,2 mm)) other than itself."""
-    return _inside_any(P[nb], c[own], nb == own[:, None])
+    return _inside_any(np.take(P, nb, axis=0), c[own], nb == own[:, None])
 
 
 def _inside_any(corners: np.ndarray, q: np.ndarray, skip: np.ndarray) -> np.ndarray:
@@ -762,7 +768,7 @@ def peel_overlaps(f: np.ndarray, uv: np.ndarray, rounds: int = 40, return_droppe
 
     ue, eid = _edge_ids(f)
     P = np.take(uv, f, axis=0)                                  # the map does not move while peeling: one tree
-    c = (P[:, 0] + P[:, 1] + P[:, 2]) / 3.0                     # the centroids, as P.mean(1) to the bit
+    c = _centroids(uv, f)
     tree = cKDTree(c) if len(f) else None
     alive, alive_mask, dropped = np.arange(len(f)), np.ones(len(f), bool), []
     count = np.bincount(eid.ravel(), minlength=len(ue))          # the alive triangles on each edge
@@ -845,8 +851,7 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
 
     def jacobians(t):
         """Jacobians (n,2,2) and largest singular values of the triangles t of the current map."""
-        y = out[fg[t]]
-        J = np.stack([y[:, 1] - y[:, 0], y[:, 2] - y[:, 0]], -1) @ Ainv[t]
+        J = _jacobians(out, fg[t], Ainv[t])
         return J, _singular_values(J)[0]
 
     s1 = jacobians(np.arange(len(fg)))[1]
@@ -981,16 +986,9 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
     dx0, dx1 = np.ascontiguousarray(dx[:, :, 0].T), np.ascontiguousarray(dx[:, :, 1].T)   # rest half-edges (3,F)
     wT = np.ascontiguousarray(w.T)
     ends = _ends_matrix(f[:, i2].T.ravel(), f[:, i1].T.ravel(), nv)      # half-edges c-major, as in arap
-    f0, f1, f2 = f[:, 0], f[:, 1], f[:, 2]
-    E = np.empty((len(f), 2, 2))                                         # the edges from corner 0, as columns
     y = np.asarray(uv, float).copy()
     for n in range(rounds):
-        for k in range(2):
-            yk = np.ascontiguousarray(y[:, k])
-            y0 = np.take(yk, f0)
-            E[:, k, 0] = np.take(yk, f1) - y0
-            E[:, k, 1] = np.take(yk, f2) - y0
-        J = E @ Ainv
+        J = _jacobians(y, f, Ainv)
         s1, s2, det = _singular_values(J)
         s2 = s2 * np.sign(det) * orientation                            # < 0: turned over
         bad = (s1 > goal) | (s2 < STRETCH_SHRINK_MIN)
@@ -1008,6 +1006,18 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
         y = lu.solve(np.ascontiguousarray(b + eps * y))
         y = _rigid_fit(y, uv)
     return y, rounds
+
+
+def _jacobians(y: np.ndarray, f: np.ndarray, Ainv: np.ndarray) -> np.ndarray:
+    """Jacobians (F,2,2) of triangles f of the flat map y (V,2 mm) against their rest frames' inverse edge matrices
+    Ainv (F,2,2): the edges from corner 0 as columns, gathered one coordinate at a time (np.take), times Ainv."""
+    E = np.empty((len(f), 2, 2))
+    for k in range(2):
+        yk = np.ascontiguousarray(y[:, k])
+        y0 = np.take(yk, f[:, 0])
+        E[:, k, 0] = np.take(yk, f[:, 1]) - y0
+        E[:, k, 1] = np.take(yk, f[:, 2]) - y0
+    return E @ Ainv
 
 
 def _singular_values(J: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1548,7 +1558,7 @@ def _similar_retry(cut, uv0, pairs, bonly, s: float, weight: float, current: tup
     from scipy.spatial import cKDTree
 
     uv, f_keep, f_fold, fold_mm2, info = current
-    d = cKDTree(cut.v[np.unique(f_fold)]).query(cut.v[cut.f].mean(1), distance_upper_bound=SIMILAR_REACH_MM)[0]
+    d = cKDTree(cut.v[np.unique(f_fold)]).query(_centroids(cut.v, cut.f), distance_upper_bound=SIMILAR_REACH_MM)[0]
     region = d <= SIMILAR_REACH_MM
     uv2, f_keep2, f_fold2, info2 = _flat_map(cut, uv0, pairs, bonly, s, weight, None, check=check, similar=region,
                                              factors=factors)
@@ -1589,14 +1599,13 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, near=None, candidates: i
     fn = f if near is None else f[near]
     tested = np.arange(nb_) if near is None else np.flatnonzero(np.isin(bv, fn))
     own = bv[tested][:, None, None]
-    f0, f1, f2 = fn[:, 0], fn[:, 1], fn[:, 2]
 
     def targets(uv: np.ndarray) -> np.ndarray:
         t = np.take(uv, bv, axis=0)                               # np.take: uv[bv] without the index machinery
         if not len(tested):
             return t
         q = np.take(t, tested, axis=0)
-        c = (np.take(uv, f0, axis=0) + np.take(uv, f1, axis=0) + np.take(uv, f2, axis=0)) / 3.0   # uv[f].mean(1)
+        c = _centroids(uv, fn)
         _, nb = cKDTree(c, balanced_tree=False, compact_nodes=False).query(q, k=min(candidates, len(fn)))
         corners = np.take(fn, nb.reshape(len(tested), -1), axis=0)              # (Q,k,3) vertex indices
         inside = _inside_any(np.take(uv, corners, axis=0), q, (corners == own).any(2))   # only their corners
@@ -1641,7 +1650,7 @@ def _push_region(f: np.ndarray, uv: np.ndarray, fold):
 
     if fold is None or not len(fold) or not np.isfinite(PUSH_NEAR_MM):
         return None
-    d = cKDTree(uv[np.asarray(fold)].mean(1)).query(uv[f].mean(1), distance_upper_bound=PUSH_NEAR_MM)[0]
+    d = cKDTree(_centroids(uv, np.asarray(fold))).query(_centroids(uv, f), distance_upper_bound=PUSH_NEAR_MM)[0]
     return d <= PUSH_NEAR_MM
 
 
@@ -1734,7 +1743,7 @@ def hidden_folds(v: np.ndarray, f_fold: np.ndarray, f_keep: np.ndarray, min_area
     used, local = np.unique(f_fold, return_inverse=True)
     n, lab = connected_components(_adjacency(local.reshape(-1, 3), len(used)), directed=False)
     tri_lab = lab[local.reshape(-1, 3)[:, 0]]
-    cent = v[f_fold].mean(1)
+    cent = _centroids(v, f_fold)
     out = []
     for c in range(n):
         m = tri_lab == c
