@@ -826,3 +826,27 @@ def test_the_fallback_is_the_latest_iterate_whose_boundary_does_not_cross():
     assert k == 4 and np.array_equal(uv, sq + 2) and uv is not its[3]
     assert latest_uncrossed(its, loop, min_ok_iter=5) == (0, None)    # none far enough
     assert latest_uncrossed(its[:4], loop, min_ok_iter=1) == (0, None)  # the last does not cross: no fallback
+
+
+def test_smoothed_normals_straighten_the_rays_behind_a_small_bump_and_keep_a_sphere_radial():
+    from StomachUnfoldLib.surface import smooth_normals, vertex_normals
+
+    n = 41                                                     # a 40 x 40 mm sheet, 1 mm grid, a 2 mm high bead
+    U, V = np.meshgrid(np.arange(n, dtype=float) - 20, np.arange(n, dtype=float) - 20, indexing="ij")
+    v = np.stack([U, V, 2.0 * np.exp(-(U ** 2 + V ** 2) / (2 * 1.5 ** 2))], -1).reshape(-1, 3)
+    f = _grid(n, n)
+    vn, _ = vertex_normals(v, f)
+    vn = vn * np.sign(vn[:, 2:3])
+    assert smooth_normals(v, f, vn, 0.0) is vn
+    sm = smooth_normals(v, f, vn, 2.0)
+    np.testing.assert_allclose(np.linalg.norm(sm, axis=1), 1.0, atol=1e-12)
+    tilt = np.degrees(np.arccos(np.clip(vn[:, 2], -1, 1)))
+    tilt_s = np.degrees(np.arccos(np.clip(sm[:, 2], -1, 1)))
+    assert tilt.max() > 25.0 and tilt_s.max() < 0.5 * tilt.max()
+    far = np.hypot(v[:, 0], v[:, 1]) > 10.0
+    np.testing.assert_allclose(sm[far], vn[far], atol=1e-3)   # flat wall away from the bead: the same rays
+    vs, fs, _ = _sphere()                # a sphere's normals stay radial (within 2 degrees, the UV mesh's poles apart)
+    ns = smooth_normals(vs, fs, vertex_normals(vs, fs)[0], 4.0)
+    radial = vs / np.linalg.norm(vs, axis=1, keepdims=True)
+    off = np.degrees(np.arccos(np.clip(np.sum(ns * radial, 1), -1, 1)))
+    assert off[np.abs(radial[:, 2]) < 0.95].max() < 2.0
