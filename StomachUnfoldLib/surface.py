@@ -248,9 +248,9 @@ def vertex_normals(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def smooth_normals(v: np.ndarray, f: np.ndarray, vn: np.ndarray, radius_mm: float) -> np.ndarray:
     """Unit vertex normals vn (V,3) averaged over the mesh (v LPS mm, f) to an r.m.s. radius of about radius_mm (mm).
 
-    Each round replaces a normal by the mean of its own and its edge neighbours' (then unit length again); a round
-    moves the average by about sqrt(6/7) of the mean edge, so ceil(radius^2 / (6/7 mean squared edge)) rounds are
-    run. ``radius_mm <= 0`` returns vn unchanged.
+    Each round replaces a normal by the mean of its own and its edge neighbours' (then unit length again), which
+    widens the averaging kernel's r.m.s. radius^2 by about 6/7 of the mean squared edge, so ceil(radius^2 / (6/7 mean
+    squared edge)) rounds are run. ``radius_mm <= 0`` returns vn unchanged.
     """
     if radius_mm <= 0 or len(f) == 0:
         return vn

@@ -15,9 +15,9 @@ as-similar-as-possible; a map that still hides such a fold is made again with li
 that misses less mucosa is kept); the few boundary triangles
 left stretched over 1.5x are relieved by a strain limit (``limit_stretch``); the flat map is turned so that the
 mucosa faces +k and the cardia->pylorus axis runs along +i, not rescaled; the unfolded volume is sampled along
-the vertex normals (``surface.sample_flat_map``). Expected behaviour: lengths and areas kept where the surface is
-developable (a tube, a bent tube), curvature of the dome and the bends spread evenly over the map,
-no overlap unless the flat map flips triangles (counted in the report).
+the vertex normals averaged over NORMAL_SMOOTH_MM (``surface.sample_flat_map``). Expected behaviour: lengths and
+areas kept where the surface is developable (a tube, a bent tube), curvature of the dome and the bends spread evenly
+over the map, no overlap unless the flat map flips triangles (counted in the report).
 """
 from __future__ import annotations
 
@@ -115,11 +115,11 @@ STRETCH_UNCROSS_MM = (1.0, 2.0, 4.0)
 SCAN_EDGE_VOXELS = 0.0
 #: The rays that sample the wall leave the mucosa along its normals averaged over about this r.m.s. radius (mm,
 #: :func:`surface.smooth_normals`), not the iso-surface's own: behind a bump of the mucosa as small as a 2-5 mm bead
-#: or the pyloric ring the own normals converge, so whatever lies in the wall under it is drawn magnified (a bead at
-#: the pyloric notch as a streak 2x long, two beads 13 mm apart as one). The flat map is the same. Tuning seeds 0-29
-#: and 300-459: markers 3759 -> 3764 of 3770 (3 mm: the same, visible less on more volumes; 20 rounds of averaging
-#: lost 6 faint 1.5 mm beads on held-out 1025). Rule 22, on 120 new volumes (32000-32119): markers 2403 = 2403,
-#: behind LSCM 1 -> 0, grades and maps the same
+#: or the pyloric ring the own normals converge, so whatever lies in the wall under it is drawn magnified (beads
+#: 10-20 % larger in area, two beads 10-14 mm apart touching: one for the judge). The flat map is the same.
+#: Tuning seeds 0-29 and 300-459: markers 3759 -> 3764 of 3770 (3 mm: the same, visible less on more volumes; 20
+#: rounds of averaging lost 6 faint 1.5 mm beads on held-out 1025). Rule 22, on 120 new volumes (32000-32119):
+#: markers 2403 = 2403, behind LSCM 1 -> 0, grades and maps the same
 NORMAL_SMOOTH_MM = 2.0
 #: lumen voxels above the air threshold (fluid) beyond which the surface follows the lumen mask
 FLUID_FRACTION = 0.01
