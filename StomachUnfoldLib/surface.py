@@ -245,32 +245,6 @@ def vertex_normals(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return unit(vn), unit(fn)
 
 
-def smooth_normals(v: np.ndarray, f: np.ndarray, vn: np.ndarray, radius_mm: float) -> np.ndarray:
-    """Unit vertex normals vn (V,3) averaged over the mesh (v LPS mm, f) to an r.m.s. radius of about radius_mm (mm).
-
-    Each round replaces a normal by the mean of its own and its edge neighbours' (then unit length again), which
-    widens the averaging kernel's r.m.s. radius^2 by about 6/7 of the mean squared edge, so ceil(radius^2 / (6/7 mean
-    squared edge)) rounds are run. ``radius_mm <= 0`` returns vn unchanged.
-    """
-    if radius_mm <= 0 or len(f) == 0:
-        return vn
-    from scipy.sparse import coo_matrix
-
-    e = sorted_edges(f)
-    n = len(v)
-    d = v[e[:, 0]] - v[e[:, 1]]
-    rounds = int(np.ceil(radius_mm ** 2 / (6.0 / 7.0 * float(np.mean(np.sum(d * d, 1))))))
-    rows = np.concatenate([e[:, 0], e[:, 1], np.arange(n)])
-    cols = np.concatenate([e[:, 1], e[:, 0], np.arange(n)])
-    A = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)).tocsr()   # an inner edge's two triangles: 2
-    A.data[:] = 1.0
-    A = A.multiply(1.0 / np.asarray(A.sum(axis=1))).tocsr()
-    out = vn
-    for _ in range(rounds):
-        out = unit(A @ out)
-    return out
-
-
 def largest_component(nv: int, f: np.ndarray) -> np.ndarray:
     """Bool mask of the triangles of the largest edge-connected component."""
     from scipy.sparse import coo_matrix

@@ -829,7 +829,8 @@ def test_the_fallback_is_the_latest_iterate_whose_boundary_does_not_cross():
 
 
 def test_smoothed_normals_straighten_the_rays_behind_a_small_bump_and_keep_a_sphere_radial():
-    from StomachUnfoldLib.surface import smooth_normals, vertex_normals
+    from StomachUnfoldLib.methods.isometric import smooth_normals
+    from StomachUnfoldLib.surface import vertex_normals
 
     n = 41                                                     # a 40 x 40 mm sheet, 1 mm grid, a 2 mm high bead
     U, V = np.meshgrid(np.arange(n, dtype=float) - 20, np.arange(n, dtype=float) - 20, indexing="ij")

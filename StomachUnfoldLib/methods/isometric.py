@@ -34,13 +34,12 @@ from ..frontend import timed_stage
 from ..params import SurfaceParameters
 from ..spare_core import Beside
 from ..surface import (compact, cut_surface, inner_surface, largest_component, orient_and_scale, perpendicular,
-                       sample_flat_map, signed_area_2d, smooth_normals, smooth_tangents, sorted_edges, unit,
-                       vertex_normals)
+                       sample_flat_map, signed_area_2d, smooth_tangents, sorted_edges, unit, vertex_normals)
 from . import Method, Unfolding, register
 
 __all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "largest_defect_mm2",
            "triangle_frames", "cot_laplacian", "stretch_stats", "limit_stretch", "cut_along_path", "open_surface",
-           "taubin_smooth", "IsoSurface", "MAX_MESH_VERTICES", "outside_scan"]
+           "taubin_smooth", "smooth_normals", "IsoSurface", "MAX_MESH_VERTICES", "outside_scan"]
 
 #: the default of the ``isometric_vertices`` parameter (the mesh's size is a run's parameter; this is its default)
 MAX_MESH_VERTICES = SurfaceParameters().isometric_vertices
@@ -114,7 +113,7 @@ STRETCH_UNCROSS_MM = (1.0, 2.0, 4.0)
 #: 2892 (1111 mm^2)
 SCAN_EDGE_VOXELS = 0.0
 #: The rays that sample the wall leave the mucosa along its normals averaged over about this r.m.s. radius (mm,
-#: :func:`surface.smooth_normals`), not the iso-surface's own: behind a bump of the mucosa as small as a 2-5 mm bead
+#: :func:`smooth_normals`), not the iso-surface's own: behind a bump of the mucosa as small as a 2-5 mm bead
 #: or the pyloric ring the own normals converge, so whatever lies in the wall under it is drawn magnified (beads
 #: 10-20 % larger in area, two beads 10-14 mm apart touching: one for the judge). The flat map is the same.
 #: Tuning seeds 0-29 and 300-459: markers 3759 -> 3764 of 3770 (3 mm: the same, visible less on more volumes; 20
@@ -1117,8 +1116,7 @@ def _edges(f: np.ndarray) -> np.ndarray:
 
 def _boundary_edges(f: np.ndarray) -> np.ndarray:
     """Edges (B,2) of triangles f that only one triangle has: the mesh's boundary."""
-    ue, cnt = _unique_rows(sorted_edges(f),
-                           return_counts=True)
+    ue, cnt = _unique_rows(sorted_edges(f), return_counts=True)
     return ue[cnt == 1]
 
 
@@ -1147,6 +1145,29 @@ def taubin_smooth(v: np.ndarray, f: np.ndarray, iterations: int = 10, lam: float
             d = W @ x - x
             x[move] += k * d[move]
     return x
+
+
+def smooth_normals(v: np.ndarray, f: np.ndarray, vn: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Unit vertex normals vn (V,3) averaged over the mesh (v LPS mm, f) to an r.m.s. radius of about radius_mm (mm).
+
+    Each round replaces a normal by the mean of its own and its edge neighbours' (``taubin_smooth``'s uniform
+    neighbours and the vertex itself; then unit length again), which widens the averaging kernel's r.m.s. radius^2 by
+    about 6/7 of the mean squared edge, so ceil(radius^2 / (6/7 mean squared edge)) rounds are run. ``radius_mm <= 0``
+    returns vn unchanged.
+    """
+    if radius_mm <= 0 or len(f) == 0:
+        return vn
+    from scipy.sparse import diags, identity
+
+    e = sorted_edges(f)                                      # each triangle's edges: an inner edge counted twice
+    d = np.take(v, e[:, 0], axis=0) - np.take(v, e[:, 1], axis=0)
+    rounds = int(np.ceil(radius_mm ** 2 / (6.0 / 7.0 * float(np.mean(np.sum(d * d, 1))))))
+    A = (_adjacency(f, len(v)) + identity(len(v), format="csr")).tocsr()
+    W = diags(1.0 / np.asarray(A.sum(axis=1)).ravel()) @ A
+    out = vn
+    for _ in range(rounds):
+        out = unit(W @ out)
+    return out
 
 
 @dataclass
