@@ -78,6 +78,36 @@ def test_cut_tube_between_openings_gives_disc():
     assert _euler_and_loops(v2, f2) == (1, 1)
 
 
+def test_the_cut_keeps_off_a_hole_on_the_incision_line_and_opens_the_tube():
+    """A hole the openings' trimming left on the incision line (here: the fan round one vertex of the line removed)
+    is walked round. Before, the cut ran through a vertex of its rim and could not be opened there (AnatomyError:
+    held-out seed 1008 with its clicks 10 mm off)."""
+    from types import SimpleNamespace
+
+    from StomachUnfoldLib.methods.isometric import cut_path, boundary_loops
+
+    nu, nv = 12, 20
+    a = np.linspace(0, 2 * np.pi, nv, endpoint=False)
+    z = np.linspace(0, 40, nu)
+    v = np.stack([10 * np.cos(a)[None].repeat(nu, 0), 10 * np.sin(a)[None].repeat(nu, 0),
+                  z[:, None].repeat(nv, 1)], -1).reshape(-1, 3)
+    f = _grid(nu, nv, closed_v=True)
+    gone = 6 * nv                                            # a vertex on the incision line (angle 0), mid-tube
+    f = f[~(f == gone).any(1)]
+    loops = boundary_loops(f)
+    assert len(loops) == 3
+    start = min(loops, key=lambda b: v[b, 2].mean())
+    end = max(loops, key=lambda b: v[b, 2].mean())
+    hole = next(b for b in loops if b is not start and b is not end)
+    inc = SimpleNamespace(points_lps=np.stack([np.full(nu, 10.0), np.zeros(nu), z], 1))
+    warnings = []
+    path = cut_path(v, f, loops, start, end, inc, warnings)
+    assert not np.isin(path, hole).any() and warnings == []
+    assert path[0] in start and path[-1] in end
+    v2, f2, src = cut_along_path(v, f, path, ends_on_boundary=True)
+    assert _euler_and_loops(v2, f2) == (0, 2)                # the disc, with the hole inside it
+
+
 def test_arap_of_developable_patch_is_isometric():
     nu, nv, R = 15, 20, 15.0
     a = np.linspace(0, 1.5 * np.pi, nv)

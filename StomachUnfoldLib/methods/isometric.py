@@ -1307,12 +1307,15 @@ def _scan_edge_slit(v: np.ndarray, f: np.ndarray, scan_rim: np.ndarray, on_cut: 
     return path
 
 
-def _cut_path(v, f, loops, start_loop, end_loop, inc, warnings, avoid=None) -> np.ndarray:
-    """Vertex ids of the cut: the Dijkstra path on the mesh edges from the cardia opening to the pylorus opening,
-    edge cost length x (1 + (distance to the incision line / 2 mm)^2), never along a boundary, nor through a vertex
-    of ``avoid`` (bool per vertex: the openings at the scan's edge) where another path exists. The path may start at
-    any vertex of the cardia opening (a virtual source joins them, each at the cost of its distance to the incision
-    line), so an opening vertex whose every edge runs along a boundary cannot strand the cut."""
+def cut_path(v: np.ndarray, f: np.ndarray, loops: list, start_loop, end_loop, inc, warnings: list) -> np.ndarray:
+    """Vertex ids of the cut of a mesh (v LPS mm, f; ``loops`` its boundary loops, two of them the openings;
+    ``inc.points_lps`` the incision line, LPS mm): the Dijkstra path on the mesh edges from the cardia opening to
+    the pylorus opening, edge cost length x (1 + (distance to the incision line / 2 mm)^2), never along a boundary,
+    nor through a vertex of any other boundary loop where another path exists (an opening at the scan's edge, slit
+    to the border apart; a hole the trimming of the openings left: ``cut_along_path`` cannot open a path through a
+    boundary vertex). The path may start at any vertex of the cardia opening (a virtual source joins them, each at
+    the cost of its distance to the incision line), so an opening vertex whose every edge runs along a boundary
+    cannot strand the cut."""
     from scipy.spatial import cKDTree
 
     ip = np.asarray(inc.points_lps, float)
@@ -1333,11 +1336,15 @@ def _cut_path(v, f, loops, start_loop, end_loop, inc, warnings, avoid=None) -> n
     nv = len(v)
     start = np.asarray(start_loop, np.int64)
     start_cost = 1e-6 + d_inc[start] * (1.0 + (d_inc[start] / 2.0) ** 2)
-    avoided = avoid is not None and bool(avoid.any())
+    avoid = np.zeros(nv, bool)
+    for b in loops:
+        if b is not start_loop and b is not end_loop:
+            avoid[b] = True
+    avoided = bool(avoid.any())
     ok = okc & ~(avoid[e[:, 0]] | avoid[e[:, 1]]) if avoided else okc
     dist, pred = _search_from(e, cost, ok, start, start_cost, nv)
     tgt = end_loop[np.argmin(dist[end_loop])]
-    if not np.isfinite(dist[tgt]) and avoided:   # the only way runs through those openings: taken
+    if not np.isfinite(dist[tgt]) and avoided:   # the only way runs through those loops: taken
         dist, pred = _search_from(e, cost, okc, start, start_cost, nv)
         tgt = end_loop[np.argmin(dist[end_loop])]
     if not np.isfinite(dist[tgt]):
@@ -1414,10 +1421,7 @@ def open_surface(prep, max_vertices: int = MAX_MESH_VERTICES, warnings: list | N
     if len(loops) - 2 - len(at_edge) > 0:
         warnings.append(f"the lumen surface has {len(loops) - 2 - len(at_edge)} holes besides the two openings")
     progress(0.6)
-    avoid = np.zeros(len(v), bool)
-    for b in at_edge:
-        avoid[b] = True
-    path = _cut_path(v, f, loops, start_loop, end_loop, inc, warnings, avoid)
+    path = cut_path(v, f, loops, start_loop, end_loop, inc, warnings)
     progress(0.7)
     nv0 = len(v)
     v2, f2, srcv = cut_along_path(v, f, path, ends_on_boundary=True)
