@@ -17,6 +17,7 @@ import numpy as np
 
 from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
+from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
 from .memory import memory_markdown, memory_plot, memory_runs
 
 __all__ = ["Case", "phantom_set", "run_case", "run_cases", "run_benchmark", "replot", "place_labels", "KAPPAS"]
@@ -134,6 +135,10 @@ def _load(source: dict):
 
             cardia, pylorus, auto = found_versus_truth(ct, truth)
             return ct, cardia, pylorus, None, dict(markers, _truth=truth, _auto=auto)
+        if "click_error_mm" in source:  # the clicks off their places (part ``clicks``)
+            cardia, pylorus = moved_clicks(truth["cardia_lps"], truth["pylorus_lps"], source["click_error_mm"],
+                                           source["random"], source.get("click_draw", 0))
+            return ct, cardia, pylorus, None, dict(markers, _truth=truth)
         return ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]), None, dict(markers, _truth=truth)
     if "real" in source:
         from StomachUnfoldLib.io import read_label_volume, read_volume
@@ -346,6 +351,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += zero_click_cases(quick)
     if "meshsize" in parts:
         cases += mesh_size_cases(quick)
+    if "clicks" in parts:
+        cases += click_error_cases(quick, TUNE_SEEDS, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "surfacebound" in parts:
         cases += surface_bound_cases(quick)
     if "surfacebound-fresh" in parts:
@@ -875,6 +882,7 @@ def _plots(rows: list[dict], out_dir: str, full: dict | None) -> list[str]:
         _save(fig, out_dir, "full_size_stages.png", made)
     _family_plot(ok, out_dir, made, plt)
     _mesh_size_plot(rows, out_dir, made, plt)
+    click_error_plot(rows, TUNE_SEEDS, HELD_OUT_SEEDS, out_dir, made, plt, _save)
     _surface_bound_plot(rows, out_dir, made, plt)
     memory_plot(ok, out_dir, made, plt)
     return made
@@ -1082,6 +1090,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     table("peers", "Peers on the same phantoms (the inverted column: wall folded back along the unrolling)")
     L += family_markdown(rows)
     L += mesh_size_markdown(rows)
+    L += click_error_markdown(rows, TUNE_SEEDS, HELD_OUT_SEEDS)
     L += surface_bound_markdown(rows)
     L += memory_markdown(rows)
     for png in made:

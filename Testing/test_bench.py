@@ -391,3 +391,59 @@ def test_a_fresh_part_runs_that_set_alone_with_every_method(part, seeds):
     assert len(alone) == len(getattr(bench, seeds)) * len(bench.FAMILY_METHODS)
     whole = [c["name"] for c in bench._cases(False, False, None, ["stomachs"]) if c["group"] == f"stomachs-{part}"]
     assert whole == [c["name"] for c in alone]
+
+
+def test_clicks_moved_off_their_places_are_that_far_from_the_truth_and_the_same_for_every_method(tmp_path):
+    from StomachUnfoldEval import click_error as ce
+
+    c0, p0 = np.array([10.0, -5.0, 30.0]), np.array([-20.0, 4.0, -12.0])
+    c, p = ce.moved_clicks(c0, p0, 5.0, seed=7, draw=1)
+    assert np.linalg.norm(c - c0) == pytest.approx(5.0) and np.linalg.norm(p - p0) == pytest.approx(5.0)
+    again = ce.moved_clicks(c0, p0, 5.0, seed=7, draw=1)
+    assert np.array_equal(again[0], c) and np.array_equal(again[1], p)
+    other = ce.moved_clicks(c0, p0, 5.0, seed=7, draw=0)
+    assert not np.allclose(other[0], c)
+    cases = bench._cases(quick=False, full_size=False, data_dir=None, parts=("clicks",))
+    n = len(bench.TUNE_SEEDS) + len(bench.HELD_OUT_SEEDS)
+    assert len(cases) == n * len(ce.CLICK_METHODS) * len(ce.CLICK_ERRORS_MM) * ce.CLICK_DRAWS
+    assert {c["group"] for c in cases} == {ce.GROUP} and {c["method"] for c in cases} == set(ce.CLICK_METHODS)
+    assert len({c["name"] for c in cases}) == len(cases)
+    # through the bench's own loader and one whole run: the points it unfolds from are the moved ones
+    src = {"random": 0, "size": "tiny", "_cache": str(tmp_path), "click_error_mm": 10.0, "click_draw": 0}
+    ct, cardia, pylorus, _, markers = bench._load(dict(src))
+    truth = markers["_truth"]
+    assert np.linalg.norm(cardia - np.asarray(truth["cardia_lps"])) == pytest.approx(10.0)
+    assert np.linalg.norm(pylorus - np.asarray(truth["pylorus_lps"])) == pytest.approx(10.0)
+    row = bench.run_case(bench.Case("stomach-0/isometric-clicks-10mm-0", src, {}, method="isometric", group=ce.GROUP))
+    assert row["ok"], row.get("error")
+    assert row["source"]["click_error_mm"] == 10.0 and "markers" in row["quality"]
+
+
+def test_the_clicks_table_sets_each_method_beside_its_own_rows_with_the_true_points():
+    from StomachUnfoldEval import click_error as ce
+
+    def row(seed, method, err=None, seen=10, grade="excellent", ok=True, group=None, vis=1.0):
+        r = {"name": f"stomach-{seed}/{method}" + (f"-clicks-{err:g}mm-0" if err else ""), "method": method,
+             "group": group or (ce.GROUP if err else "stomachs-tune"), "ok": ok,
+             "source": {"random": seed, **({"click_error_mm": err} if err else {})}}
+        if ok:
+            r["quality"] = {"grade": grade, "visible_fraction": vis, "markers": {"seen": seen, "total": 10}}
+        else:
+            r["error"] = "AnatomyError: no opening after trimming; check the points"
+        return r
+    rows = [row(0, "isometric"), row(1, "isometric", seen=9), row(2, "isometric"),     # 2: not run moved: left out
+            row(0, "isometric", 5.0, seen=9), row(1, "isometric", 5.0, grade="good", vis=0.99),
+            row(0, "lscm"), row(1, "lscm"), row(0, "lscm", 5.0, ok=False), row(1, "lscm", 5.0),
+            row(1000, "isometric", 5.0, group=ce.GROUP)]
+    summ = {(x["set"], x["method"], x["error_mm"]): x for x in ce.click_error_summary(rows, [0, 1, 2], [1000])}
+    t0, t5 = summ[("tuning", "isometric", 0.0)], summ[("tuning", "isometric", 5.0)]
+    assert (t0["runs"], t0["markers_seen"], t0["fewer_markers"]) == (2, 19, 0)
+    assert (t5["runs"], t5["excellent"], t5["good_or_better"], t5["markers_seen"], t5["fewer_markers"]) == (2, 1, 2, 19, 1)
+    assert t5["visible_min"] == pytest.approx(0.99)
+    l5 = summ[("tuning", "lscm", 5.0)]
+    assert (l5["runs"], l5["failed"]) == (2, 1) and list(l5["errors"].values()) == [1]
+    assert summ[("held-out", "isometric", 5.0)]["runs"] == 1 and ("held-out", "isometric", 0.0) not in summ
+    md = "\n".join(ce.click_error_markdown(rows, [0, 1, 2], [1000]))
+    assert "| tuning | isometric | 5 | 2 | 0 | 1 | 2 | 99.50 / 99.00 | 19/20 | 1 |" in md
+    assert 'lscm 1x "AnatomyError: no opening after trimming"' in md
+    assert ce.click_error_markdown(rows[:3], [0, 1, 2], [1000]) == []                 # not run: no table
