@@ -197,3 +197,18 @@ def test_the_narrow_lumen_warning_ignores_the_openings_and_names_grid_mm():
     assert narrow_lumen_warning([0.5, 8.0, 9.0, 7.0, 0.4], cell) is None        # only the openings are narrow
     msg = narrow_lumen_warning([6.0, 8.0, 1.2, 7.0, 6.0], cell)
     assert msg and "1.2 mm radius" in msg and "--grid-mm" in msg and "--grid-size" not in msg
+
+
+def test_lscm_flattens_with_a_free_boundary_where_a_click_off_the_opening_leaves_it_closed():
+    """A cardia clicked 5 mm off (the bench's ``clicks`` part, tuning seed 0 drawn tiny) leaves the end plane behind
+    no wall: the tube's conformal map has no opening to put on its line, so the spectral form flattens the wall
+    (before: AnatomyError on 31 of 120 such runs of the tuning stomachs)."""
+    from StomachUnfoldEval.click_error import moved_clicks
+    from StomachUnfoldEval.random_stomach import random_stomach
+
+    ct, truth = random_stomach(0, "tiny")[:2]
+    cardia, pylorus = moved_clicks(truth["cardia_lps"], truth["pylorus_lps"], 5.0, seed=0, draw=1)
+    res = METHODS["lscm"](ct, cardia, pylorus)
+    assert any("free boundary (spectral conformal map)" in w for w in res.result.report["warnings"])
+    assert res.quality["grade"] in ("excellent", "good") and res.quality["visible_fraction"] > 0.95
+    assert res.quality["inverted_fraction"] == 0.0

@@ -26,18 +26,23 @@ __all__ = ["LSCMFlattening", "conformal_map", "MAX_MESH_VERTICES"]
 MAX_MESH_VERTICES = 20000
 
 
-def conformal_map(cut, boundary: str = "tube") -> np.ndarray:
-    """LSCM flat map (V,2, unscaled) of a CutSurface with the given boundary form (tube, two_pins, spectral)."""
+def conformal_map(cut, boundary: str = "tube", warnings: list | None = None) -> np.ndarray:
+    """LSCM flat map (V,2, unscaled) of a CutSurface with the given boundary form (tube, two_pins, spectral).
+
+    The tube form needs both openings; where the end planes leave one closed (a point clicked off the opening, its
+    plane behind no wall) the spectral form is used instead and ``warnings`` (a list) is told so."""
     v, f, near, is_copy, end_flag = cut.v, cut.f, cut.near, cut.is_copy, cut.end_flag
     seam = np.flatnonzero(is_copy)
     pa, pb = seam[np.argmin(near[seam])], seam[np.argmax(near[seam])]
     if pa == pb:
         raise AnatomyError("the seam of the cut surface is too short to pin the conformal map")
     if boundary == "tube":
-        if not ((end_flag == 1).any() and (end_flag == 2).any()):
-            raise AnatomyError("the lumen surface has no opening at the cardia or pylorus end after trimming; check "
-                               "the points")
-        return tube_conformal(v, f, cut.partner, end_flag, pin=pa)
+        if (end_flag == 1).any() and (end_flag == 2).any():
+            return tube_conformal(v, f, cut.partner, end_flag, pin=pa)
+        if warnings is not None:
+            warnings.append("the lumen surface has no opening at the cardia or pylorus end after trimming: flattened "
+                            "with a free boundary (spectral conformal map) instead of the tube's; check the points")
+        boundary = "spectral"
     if boundary == "spectral":
         return spectral_conformal(v, f, np.unique(cut.boundary_edges))
     return lscm(v, f, np.array([pa, pb]), np.array([[0.0, 0.0], [float(np.linalg.norm(v[pb] - v[pa])), 0.0]]))
@@ -56,7 +61,7 @@ class LSCMFlattening(Method):
         with timed_stage(progress, "surface", seconds, 0.0, 0.25):
             cut = cut_surface(prep, MAX_MESH_VERTICES, warnings)
         with timed_stage(progress, "conformal map", seconds, 0.25, 0.5):
-            uv = conformal_map(cut, prep.params.lscm_boundary)
+            uv = conformal_map(cut, prep.params.lscm_boundary, warnings)
             uv, flipped, area = orient_and_scale(uv, cut, prep.pixel_mm)
         with timed_stage(progress, "volume", seconds, 0.5, 1.0) as report:
             vol, fwd, inv, mesh, info = sample_flat_map(prep, cut, uv, report)
