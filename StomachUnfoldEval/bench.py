@@ -19,6 +19,7 @@ from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
 from .memory import memory_markdown, memory_plot, memory_runs
+from .regional import area_scale_along, area_scale_summary
 
 __all__ = ["Case", "phantom_set", "run_case", "run_cases", "run_benchmark", "replot", "place_labels", "KAPPAS"]
 
@@ -211,6 +212,7 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
         q = dict(rep["quality"])
         if family is not None:
             q["markers"] = family_marker_metrics(res, family)
+            q["area_scale_along"] = area_scale_along(res.mesh, res.centerline_lps)
         elif markers:
             q["markers"] = marker_metrics(res, markers)
         sim = rep["method"].get("simulation", {})
@@ -1168,7 +1170,8 @@ def family_summary(rows: list[dict], group: str) -> dict:
                   "visible_not_below_every_peer": not_below_peers,
                   "length_error_mm_mean": float(np.mean(err)) if err else None,
                   "length_error_mm_sd_of_means": float(np.std(err)) if err else None,
-                  "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None}
+                  "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None,
+                  "area_scale_along_median": area_scale_summary(ok)}
     if zero:
         out.update(zero_click_summary(zero, rs))
     return out
@@ -1259,6 +1262,11 @@ def family_markdown(rows: list[dict]) -> list[str]:
                      "region also within 4 mm of another marker's place or over twice the median region's size, a "
                      "bead joined to another or to dense tissue / off: a lone bead's region, centred farther / not "
                      "shown): " + "; ".join(missed) + ".\n")
+        along = [f"{m} " + " ".join("-" if x is None else f"{x:.2f}" for x in v["area_scale_along_median"])
+                 for m, v in summ.items() if v.get("area_scale_along_median")]
+        if along:
+            L.append("Area scale of the view (view area / mucosa area, 1: true) per tenth of the centreline, cardia "
+                     "first, median over the volumes: " + "; ".join(along) + ".\n")
         for m, v in summ.items():
             if "points_within_10mm" in v:
                 L.append(f"*{m}*: the points found (no clicks) lie within 10 mm of the true cardia and pylorus on "

@@ -447,3 +447,26 @@ def test_the_clicks_table_sets_each_method_beside_its_own_rows_with_the_true_poi
     assert "| tuning | isometric | 5 | 2 | 0 | 1 | 2 | 99.50 / 99.00 | 19/20 | 1 |" in md
     assert 'lscm 1x "AnatomyError: no opening after trimming"' in md
     assert ce.click_error_markdown(rows[:3], [0, 1, 2], [1000]) == []                 # not run: no table
+
+
+def test_the_area_scale_along_the_centreline_finds_the_stretch_a_view_draws_larger():
+    from types import SimpleNamespace
+
+    from StomachUnfoldEval.regional import area_scale_along, area_scale_summary
+
+    nx, ny = 41, 11
+    x, y = np.meshgrid(np.linspace(0, 100, nx), np.linspace(0, 20, ny), indexing="ij")
+    rest = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    idx = np.arange(nx * ny).reshape(nx, ny)
+    tris = np.array([t for a in range(nx - 1) for b in range(ny - 1)
+                     for t in ([idx[a, b], idx[a + 1, b], idx[a + 1, b + 1]], [idx[a, b], idx[a + 1, b + 1], idx[a, b + 1]])])
+    view = rest.copy()
+    far = rest[:, 0] >= 50.0                                 # the second half along the centreline: twice as wide
+    view[:, 1] = np.where(far, 2.0 * rest[:, 1], rest[:, 1])
+    centerline = np.stack([np.linspace(0, 100, 51), np.full(51, 10.0), np.full(51, 5.0)], 1)
+    got = area_scale_along(SimpleNamespace(surface=tris, rest_lps=rest, unfolded_lps=view), centerline, parts=4)
+    assert got == pytest.approx([1.0, 1.0, 2.0, 2.0])        # (the column at x = 50 splits by its centroids)
+    rows = [{"ok": True, "quality": {"area_scale_along": [1.0, 1.0, 2.0, 2.0]}},
+            {"ok": True, "quality": {"area_scale_along": [1.0, 1.0, 1.0, None]}}, {"ok": False}]
+    assert area_scale_summary(rows) == pytest.approx([1.0, 1.0, 1.5, 2.0])
+    assert area_scale_summary([{"ok": False}]) is None
