@@ -12,15 +12,32 @@ from .errors import (StomachUnfoldError, InputError, PointError, AnatomyError,  
 __version__ = "0.1.0"
 
 
+#: The Ctrl-C presses the command's handlers saw. Python drops what a handler raises inside a weakref callback (the
+#: import system's module locks have one), and the run would go on to write its outputs: the command checks this
+#: list before each stage and at each progress report, and cancels (``cli``).
+CTRL_C: list = []
+
+
 def cancelled_while_starting(signum, frame):
     """Ctrl-C while the ``stomach-unfold`` command is still importing: its one line and status 130, no traceback."""
     import sys
 
+    CTRL_C.append(signum)
     try:
         sys.stderr.write("error: cancelled (Ctrl-C); no output was written\n")
     except OSError:
         pass
     raise SystemExit(130)
+
+
+def quiet_dropped_ctrl_c(unraisable):
+    """``sys.unraisablehook`` of the command: a Ctrl-C that Python dropped (raised in a weakref callback) prints no
+    traceback, as the command cancels at its next check (CTRL_C); anything else goes to Python's own hook."""
+    import sys
+
+    if CTRL_C and isinstance(unraisable.exc_value, (KeyboardInterrupt, SystemExit)):
+        return
+    sys.__unraisablehook__(unraisable)
 
 
 def _starting_the_command() -> bool:
@@ -34,8 +51,10 @@ def _starting_the_command() -> bool:
 
 if _starting_the_command():  # the command, not a library import: cli.main() takes over from here
     import signal as _signal
+    import sys as _sys
 
     _signal.signal(_signal.SIGINT, cancelled_while_starting)
+    _sys.unraisablehook = quiet_dropped_ctrl_c
 
 
 def __getattr__(name):

@@ -14,6 +14,7 @@ import time
 
 # only the standard library and the errors here: NumPy and the library are imported inside main()'s try, so a Ctrl-C
 # in the first milliseconds gives the same one line as later
+from . import CTRL_C
 from .errors import Cancelled, InputError, PointError, StomachUnfoldError
 
 __all__ = ["main", "build_parser", "parse_point"]
@@ -209,6 +210,8 @@ class _Bar:
         self.stream.flush()
 
     def __call__(self, stage: str, fraction: float):
+        if CTRL_C:  # a Ctrl-C whose KeyboardInterrupt Python dropped: the library cancels (Cancelled)
+            return False
         if self.quiet:
             return
         f = self.lo + (self.hi - self.lo) * min(max(fraction, 0.0), 1.0)
@@ -368,6 +371,7 @@ def _cmd_unfold(args) -> int:
             curve = np.array(list(read_markups_points(args.incision_curve).values()), float)
         landmarks = read_markups_points(args.landmarks) if args.landmarks else None
         result = unfold(ct, cardia, pylorus, params, mask=mask, incision_curve_lps=curve, progress=bar.span(0.08, 0.95))
+        _cancel_if_ctrl_c()
         bar.span(0.95, 1.0)("writing", 0.0)
         if found is not None:
             result.report["auto_points"] = found.to_dict()
@@ -580,12 +584,15 @@ class _Signalled(KeyboardInterrupt):
         self.signum = signum
 
 
-_INTERRUPTED = []  # set by the Ctrl-C handler: an import that C code turned into an ImportError was a Ctrl-C
-
-
 def _on_ctrl_c(signum, frame):
-    _INTERRUPTED.append(signum)
+    CTRL_C.append(signum)  # an import that C code turned into an ImportError was a Ctrl-C; a dropped one is seen later
     raise KeyboardInterrupt
+
+
+def _cancel_if_ctrl_c() -> None:
+    """Raise KeyboardInterrupt if a Ctrl-C was pressed whose KeyboardInterrupt Python dropped (see CTRL_C)."""
+    if CTRL_C:
+        raise KeyboardInterrupt
 
 
 def _in_import(frame) -> bool:
@@ -641,6 +648,9 @@ def main(argv=None) -> int:
     128 + the signal's number on SIGTERM (143) or SIGHUP (129)); no partial output is left on any of them."""
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None))
                 if s is not None}
+    if argv is None and CTRL_C:   # the command's early handler said so, and Python dropped its exit
+        return 130
+    CTRL_C.clear()                # called as a function: a Ctrl-C of an earlier call is not this one's
     try:
         _catch_signals()
         argv_list = _glue_points(list(sys.argv[1:] if argv is None else argv))
@@ -650,6 +660,7 @@ def main(argv=None) -> int:
             return 2
         args = build_parser().parse_args(argv_list)
         args.argv = argv_list
+        _cancel_if_ctrl_c()
         if args.command == "unfold":
             return _cmd_unfold(args)
         if args.command == "phantom":
@@ -665,12 +676,12 @@ def main(argv=None) -> int:
         _say("error: cancelled (Ctrl-C); no output was written", sys.stderr)
         return 130
     except ImportError:
-        if not _INTERRUPTED:  # a missing package: its own message
+        if not CTRL_C:  # a missing package: its own message
             raise
         _say("error: cancelled (Ctrl-C); no output was written", sys.stderr)  # NumPy's import turns it into this
         return 130
     except Cancelled as e:
-        _say(f"error: {e}", sys.stderr)
+        _say("error: cancelled (Ctrl-C); no output was written" if CTRL_C else f"error: {e}", sys.stderr)
         return 130
     except StomachUnfoldError as e:
         _say(f"error: {e}", sys.stderr)
