@@ -64,13 +64,18 @@ def test_cut_closed_surface_gives_disc():
     assert np.all(signed_area_2d(v2[:, :2], f2) * 0 == 0)
 
 
+def _tube(nu=12, nv=20, radius=10.0, length=40.0):
+    """An open tube along z (V,3 mm; nu rings of nv vertices, vertex k * nv on the generator at angle 0), triangles."""
+    a = np.linspace(0, 2 * np.pi, nv, endpoint=False)
+    z = np.linspace(0, length, nu)
+    v = np.stack([radius * np.cos(a)[None].repeat(nu, 0), radius * np.sin(a)[None].repeat(nu, 0),
+                  z[:, None].repeat(nv, 1)], -1).reshape(-1, 3)
+    return v, _grid(nu, nv, closed_v=True)
+
+
 def test_cut_tube_between_openings_gives_disc():
     nu, nv = 12, 20
-    a = np.linspace(0, 2 * np.pi, nv, endpoint=False)
-    z = np.linspace(0, 40, nu)
-    v = np.stack([10 * np.cos(a)[None].repeat(nu, 0), 10 * np.sin(a)[None].repeat(nu, 0),
-                  z[:, None].repeat(nv, 1)], -1).reshape(-1, 3)
-    f = _grid(nu, nv, closed_v=True)
+    v, f = _tube(nu, nv)
     assert _euler_and_loops(v, f) == (0, 2)
     path = np.arange(nu) * nv                                # along a generator from one opening to the other
     v2, f2, src = cut_along_path(v, f, path, ends_on_boundary=True)
@@ -84,14 +89,10 @@ def test_the_cut_keeps_off_a_hole_on_the_incision_line_and_opens_the_tube():
     held-out seed 1008 with its clicks 10 mm off)."""
     from types import SimpleNamespace
 
-    from StomachUnfoldLib.methods.isometric import cut_path, boundary_loops
+    from StomachUnfoldLib.methods.isometric import boundary_loops, cut_path
 
     nu, nv = 12, 20
-    a = np.linspace(0, 2 * np.pi, nv, endpoint=False)
-    z = np.linspace(0, 40, nu)
-    v = np.stack([10 * np.cos(a)[None].repeat(nu, 0), 10 * np.sin(a)[None].repeat(nu, 0),
-                  z[:, None].repeat(nv, 1)], -1).reshape(-1, 3)
-    f = _grid(nu, nv, closed_v=True)
+    v, f = _tube(nu, nv)
     gone = 6 * nv                                            # a vertex on the incision line (angle 0), mid-tube
     f = f[~(f == gone).any(1)]
     loops = boundary_loops(f)
@@ -99,7 +100,7 @@ def test_the_cut_keeps_off_a_hole_on_the_incision_line_and_opens_the_tube():
     start = min(loops, key=lambda b: v[b, 2].mean())
     end = max(loops, key=lambda b: v[b, 2].mean())
     hole = next(b for b in loops if b is not start and b is not end)
-    inc = SimpleNamespace(points_lps=np.stack([np.full(nu, 10.0), np.zeros(nu), z], 1))
+    inc = SimpleNamespace(points_lps=np.stack([np.full(nu, 10.0), np.zeros(nu), np.linspace(0, 40, nu)], 1))
     warnings = []
     path = cut_path(v, f, loops, start, end, inc, warnings)
     assert not np.isin(path, hole).any() and warnings == []
