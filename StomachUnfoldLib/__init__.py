@@ -30,7 +30,7 @@ def cancelled_while_starting(signum, frame):
     raise SystemExit(130)
 
 
-def quiet_dropped_ctrl_c(unraisable):
+def _quiet_dropped_ctrl_c(unraisable):
     """``sys.unraisablehook`` of the command: a Ctrl-C that Python dropped (raised in a weakref callback) prints no
     traceback, as the command cancels at its next check (CTRL_C); anything else goes to Python's own hook."""
     import sys
@@ -54,7 +54,7 @@ if _starting_the_command():  # the command, not a library import: cli.main() tak
     import sys as _sys
 
     _signal.signal(_signal.SIGINT, cancelled_while_starting)
-    _sys.unraisablehook = quiet_dropped_ctrl_c
+    _sys.unraisablehook = _quiet_dropped_ctrl_c
 
 
 def __getattr__(name):

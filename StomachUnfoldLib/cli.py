@@ -12,8 +12,8 @@ import signal
 import sys
 import time
 
-# only the standard library and the errors here: NumPy and the library are imported inside main()'s try, so a Ctrl-C
-# in the first milliseconds gives the same one line as later
+# only the standard library, the package's Ctrl-C list and the errors here: NumPy and the library are imported inside
+# main()'s try, so a Ctrl-C in the first milliseconds gives the same one line as later
 from . import CTRL_C
 from .errors import Cancelled, InputError, PointError, StomachUnfoldError
 
