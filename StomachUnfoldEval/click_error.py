@@ -92,7 +92,8 @@ def click_error_markdown(rows: list[dict], tune_seeds, held_out_seeds) -> list[s
     summ = click_error_summary(rows, tune_seeds, held_out_seeds)
     if not summ:
         return []
-    L = ["## Clicks off their places: each click moved 5 or 10 mm in a random direction (random stomachs)\n",
+    dist = " or ".join(f"{e:g}" for e in CLICK_ERRORS_MM)
+    L = [f"## Clicks off their places: each click moved {dist} mm in a random direction (random stomachs)\n",
          f"Each volume {CLICK_DRAWS} draws per distance, the same draws for every method; 0 mm: the `stomachs` part's "
          "rows with the true points on the same volumes. *fewer markers*: runs that see fewer markers than the same "
          "method with the true points.\n",
