@@ -1046,7 +1046,16 @@ class StomachUnfoldWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 visible=100 * q.get("visible_fraction", 0))
             StomachUnfoldLogic.applyCamera(cameraNode, out["camera"])
             self._showDistortion(out)
+            self._showWarnings(r.get("warnings") or [])
             self._ensureFindingNodes()
+
+    def _showWarnings(self, warnings):
+        """List the run's warnings (report.json's: swapped points, a point deep in the lumen, folds, holes, the scan's
+        edge) under the results, and log them, so that what the view leaves out is not silent in the panel."""
+        for w in warnings:
+            logging.warning("StomachUnfold: %s", w)
+        if warnings:
+            self.ui.resultsLabel.text += "\n" + _("Warnings:") + "".join("\n- " + w for w in warnings)
 
     def _showDistortion(self, out):
         """Put the unfolded volume with its distortion map over it in the Yellow slice view (the CT stays in Red

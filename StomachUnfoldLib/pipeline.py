@@ -270,7 +270,7 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
                                                         centerline_lps, progress=lambda f: report(0.2 + 0.8 * f),
                                                         folded=folded, points_lps=mucosa.result())
                 result.report.quality["distortion_map"] = dmap.summary()
-    from .plausibility import gas_contact_fraction, hidden_fold_warnings, plausibility_warnings
+    from .plausibility import gas_contact_fraction, hidden_fold_warnings, opening_warnings, plausibility_warnings
 
     orient = result.orientation() if params.quality else None
 
@@ -282,5 +282,6 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
         ct, prep.cardia_lps, prep.pylorus_lps, (prep.air_info or {}).get("volume_ml"), result.report.quality,
         out.unfolded, orient, gas, _cut_by_scan(ct, prep))
     result.report.warnings += hidden_fold_warnings(out.report.get("hidden_folds") or [], out.unfolded, orient)
+    result.report.warnings += opening_warnings(prep.lumen_crop, centerline_lps)
     seconds["total"] = time.perf_counter() - t_all
     return result

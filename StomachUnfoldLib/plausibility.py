@@ -1,5 +1,6 @@
 """Plausibility warnings of a finished run: a "stomach" too small to be one, a point on the scan's first or last
-slice, and for a grade of fair or worse which failure parts the view has and where."""
+slice, a point clicked deep in a wide lumen, and for a grade of fair or worse which failure parts the view has and
+where."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +8,7 @@ import numpy as np
 from .geometry import Volume
 
 __all__ = ["plausibility_warnings", "failure_regions", "hidden_fold_warnings", "where_on_view", "gas_contact_fraction",
-           "MIN_STOMACH_ML", "GAS_CONTACT_WARN"]
+           "opening_warnings", "MIN_STOMACH_ML", "GAS_CONTACT_WARN"]
 
 #: A lumen smaller than this (mL) is an air pocket, not a stomach (a gas-distended stomach holds hundreds of mL).
 MIN_STOMACH_ML = 50.0
@@ -31,6 +32,38 @@ def gas_contact_fraction(crop: Volume, lumen: np.ndarray, air_hu: float) -> floa
     gas = (np.asarray(crop.array) < air_hu) & ~lum
     touch = edge & ndimage.binary_dilation(gas)
     return float(touch.sum() / n)
+
+
+def opening_warnings(lumen_crop: Volume, centerline_lps, max_points: int = 20000) -> list[str]:
+    """A warning for each end of the centreline (LPS mm) that lies deep in a wide lumen, where the opening left out
+    about it (``centerline.in_openings``: up to twice the end point's distance from the wall) takes more of the
+    lumen's wall, beyond OPENING_RADIUS_MM (mm), than the share an excellent grade may hide: neither the view nor the
+    grade has that wall. Not at a tube's end (all the wall behind the end plane left out: the whole end opens)."""
+    from scipy.spatial import cKDTree
+
+    from .centerline import OPENING_RADIUS_MM, in_openings
+    from .preprocessing import lumen_edge
+    from .quality import GRADE_THRESHOLDS
+
+    cl = np.asarray(centerline_lps, float)
+    pts = lumen_crop.voxel_lps(lumen_edge(lumen_crop.array.astype(bool)))
+    if len(cl) < 3 or not len(pts):
+        return []
+    if len(pts) > max_points:
+        pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
+    near = cKDTree(cl).query(pts)[1]
+    left_out = in_openings(pts, cl, nearest=near)
+    behind = in_openings(pts, cl, radius_mm=np.inf, nearest=near)  # all the wall behind each end plane
+    out = []
+    for end, name in ((0, "cardia"), (len(cl) - 1, "pylorus")):
+        mine = near == end
+        d = np.linalg.norm(pts - cl[end], axis=1)
+        share = float(np.mean(left_out & mine & (d >= OPENING_RADIUS_MM)))
+        if share > GRADE_THRESHOLDS["excellent"]["max_hidden"] and (behind & mine & ~left_out).any():
+            out.append(f"the {name} point lies {d.min():.0f} mm from the wall, inside a wide part of the lumen: the "
+                       f"opening left out about it takes {100 * share:.0f} % of the stomach's wall, neither shown nor "
+                       f"graded; place the {name} point at its opening, a few mm from the wall")
+    return out
 
 
 def failure_regions(unfolded: Volume, orient: dict | None = None, min_area_mm2: float = 25.0) -> list[dict]:

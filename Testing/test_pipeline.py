@@ -183,3 +183,18 @@ def test_a_stomach_cut_off_by_the_scan_range_is_said_in_the_warnings():
     assert not any("first slice" in x or "point lies on" in x for x in w)
     whole = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], TINY).report["warnings"]
     assert not any("slice of the scan" in x for x in whole)
+
+
+def test_a_cardia_clicked_deep_in_the_fundus_is_said_in_the_warnings():
+    """The opening left out about a point deep in a wide lumen reaches twice its depth: that wall is neither shown nor
+    graded, so the run says so (tiny random stomach 4, the cardia moved 10 mm, 12 mm from the wall)."""
+    from StomachUnfoldEval.click_error import moved_clicks
+    from StomachUnfoldEval.random_stomach import random_stomach
+
+    ct, truth = random_stomach(4, "tiny")[:2]
+    cardia, pylorus = moved_clicks(truth["cardia_lps"], truth["pylorus_lps"], 10.0, seed=4, draw=1)
+    w = unfold(ct, cardia, pylorus, UnfoldParameters()).report["warnings"]
+    said = [x for x in w if "inside a wide part of the lumen" in x]
+    assert len(said) == 1 and said[0].startswith("the cardia point lies") and "place the cardia point" in said[0]
+    true = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], UnfoldParameters()).report["warnings"]
+    assert not any("inside a wide part of the lumen" in x for x in true)

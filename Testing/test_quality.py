@@ -106,3 +106,23 @@ def test_the_judge_keeps_the_wall_beside_a_side_opening_and_drops_the_tube_beyon
     cap = np.array([[40.0, 0.0, 0.0], [36.0, 9.0, 0.0], [32.0, 0.0, 14.0]])
     cl_t = np.stack([np.linspace(30.0, -30.0, 31), np.zeros(31), np.zeros(31)], 1)[::-1]
     assert in_openings(np.vstack([tube, cap]), cl_t)[-3:].all()
+
+
+def test_a_point_clicked_deep_in_a_wide_lumen_is_warned_of_and_a_point_at_its_opening_or_a_tube_end_is_not():
+    from StomachUnfoldLib.plausibility import opening_warnings
+
+    vol, cl = _ball_with_side_tube()  # the cardia 5 mm from the wall by the gas tube, the pylorus 5 mm from the wall
+    assert opening_warnings(vol, cl) == []
+    # the cardia clicked 13 mm from the wall: its opening would reach 26 mm, the wall behind it 28 mm away
+    deep = np.stack([np.linspace(12.0, -20.0, 17), np.zeros(17), np.zeros(17)], 1)
+    w = opening_warnings(vol, deep)
+    assert len(w) == 1 and w[0].startswith(("the cardia point lies 12 mm from the wall", "the cardia point lies 13 mm"))
+    share = float(w[0].split("takes ")[1].split(" %")[0])   # the cap from 10 to 25 mm behind the point, of the ball
+    assert 10 <= share <= 40
+    # the end of a tube (a cylinder whose end point sits in its middle, 12 mm from its round end): the whole end opens
+    g = (np.arange(61) - 30).astype(float)
+    z, y, x = np.meshgrid(g, g, np.arange(121) - 60.0, indexing="ij")
+    tube = Volume(((y ** 2 + z ** 2 <= 15.0 ** 2) & (np.abs(x) <= 50.0)).astype(np.uint8), [1.0, 1.0, 1.0],
+                  [-60.0, -30.0, -30.0])
+    cl_t = np.stack([np.linspace(-38.0, 38.0, 39), np.zeros(39), np.zeros(39)], 1)
+    assert opening_warnings(tube, cl_t) == []

@@ -442,6 +442,25 @@ def test_unfold_in_the_gui_then_linked_findings_both_ways(gui):
     assert abs(red.GetSliceToRAS().GetElement(2, 3) - back[2]) < 1e-3
 
 
+def test_the_run_s_warnings_are_listed_in_the_panel_and_logged(gui, caplog):
+    """The cardia and pylorus clicked the wrong way round: the run exchanges them, and the panel says so."""
+    module, widget, scene = gui
+    volume, points = loadSample()
+    a, b = [0.0] * 3, [0.0] * 3
+    points.GetNthControlPointPositionWorld(0, a)
+    points.GetNthControlPointPositionWorld(1, b)
+    points.SetNthControlPointPositionWorld(0, *b)
+    points.SetNthControlPointPositionWorld(1, *a)
+    p = widget._parameterNode
+    p.inputVolume, p.pointsNode, p.gridSize, p.wallThicknessMm = volume, points, 3, 4.0
+    with caplog.at_level("WARNING"):
+        widget.ui.applyButton.click()
+    assert p.outputVolume is not None
+    text = widget.ui.resultsLabel.text
+    assert "\nWarnings:\n- " in text and "probably swapped and have been exchanged" in text
+    assert any("probably swapped" in r.getMessage() for r in caplog.records)
+
+
 def test_module_self_test_passes_over_the_real_base_classes(module):
     """What ``Slicer --testing`` runs: slicer.selfTests["StomachUnfold"] (sample data through SampleData)."""
     happ.newScene()
