@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from StomachUnfoldLib.plausibility import DEEP_POINT_WARNING
+from StomachUnfoldLib.quality import GRADE_THRESHOLDS
+
 #: How far (mm) each click is moved from the true cardia and pylorus, in a random 3D direction.
 CLICK_ERRORS_MM = (5.0, 10.0)
 #: Random directions drawn per distance and volume.
@@ -83,7 +86,9 @@ def click_error_summary(rows: list[dict], tune_seeds, held_out_seeds) -> list[di
                             "visible_median": float(np.median(vis)) if vis else None,
                             "visible_min": float(np.min(vis)) if vis else None,
                             "markers_seen": sum(x["seen"] for _, x in mk),
-                            "markers_total": sum(x["total"] for _, x in mk), "fewer_markers": fewer})
+                            "markers_total": sum(x["total"] for _, x in mk), "fewer_markers": fewer,
+                            "deep_point_warned": sum(any(DEEP_POINT_WARNING in w for w in r.get("warnings") or [])
+                                                     for r in ok)})
     return out
 
 
@@ -96,16 +101,17 @@ def click_error_markdown(rows: list[dict], tune_seeds, held_out_seeds) -> list[s
     L = [f"## Clicks off their places: each click moved {dist} mm in a random direction (random stomachs)\n",
          f"Each volume {CLICK_DRAWS} draws per distance, the same draws for every method; 0 mm: the `stomachs` part's "
          "rows with the true points on the same volumes. *fewer markers*: runs that see fewer markers than the same "
-         "method with the true points.\n",
+         "method with the true points. *warned*: runs whose warnings say a point lies deep in a wide lumen (the opening "
+         f"left out about it takes over {100 * GRADE_THRESHOLDS['excellent']['max_hidden']:g} % of the wall).\n",
          "| set | method | click error mm | runs | failed | excellent | good or better | visible median / min % | "
-         "markers | fewer markers |", "|---|---|---|---|---|---|---|---|---|---|"]
+         "markers | fewer markers | warned |", "|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def pc(v):
         return "" if v is None else f"{100 * v:.2f}"
     for x in summ:
         L.append(f"| {x['set']} | {x['method']} | {x['error_mm']:g} | {x['runs']} | {x['failed']} | {x['excellent']} | "
                  f"{x['good_or_better']} | {pc(x['visible_median'])} / {pc(x['visible_min'])} | "
-                 f"{x['markers_seen']}/{x['markers_total']} | {x['fewer_markers']} |")
+                 f"{x['markers_seen']}/{x['markers_total']} | {x['fewer_markers']} | {x['deep_point_warned']} |")
     why = {}
     for x in summ:
         for msg, n in x["errors"].items():

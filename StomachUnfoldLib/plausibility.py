@@ -8,12 +8,14 @@ import numpy as np
 from .geometry import Volume
 
 __all__ = ["plausibility_warnings", "failure_regions", "hidden_fold_warnings", "where_on_view", "gas_contact_fraction",
-           "opening_warnings", "MIN_STOMACH_ML", "GAS_CONTACT_WARN"]
+           "opening_warnings", "MIN_STOMACH_ML", "GAS_CONTACT_WARN", "DEEP_POINT_WARNING"]
 
 #: A lumen smaller than this (mL) is an air pocket, not a stomach (a gas-distended stomach holds hundreds of mL).
 MIN_STOMACH_ML = 50.0
 #: Share of the lumen's boundary touching gas outside it from which the view's holes are put down to it.
 GAS_CONTACT_WARN = 0.005
+#: The words of :func:`opening_warnings`' warning that find it among a run's warnings.
+DEEP_POINT_WARNING = "inside a wide part of the lumen"
 
 
 def gas_contact_fraction(crop: Volume, lumen: np.ndarray, air_hu: float) -> float:
@@ -60,9 +62,9 @@ def opening_warnings(lumen_crop: Volume, centerline_lps, max_points: int = 20000
         d = np.linalg.norm(pts - cl[end], axis=1)
         share = float(np.mean(left_out & mine & (d >= OPENING_RADIUS_MM)))
         if share > GRADE_THRESHOLDS["excellent"]["max_hidden"] and (behind & mine & ~left_out).any():
-            out.append(f"the {name} point lies {d.min():.0f} mm from the wall, inside a wide part of the lumen: the "
-                       f"opening left out about it takes {100 * share:.0f} % of the stomach's wall, neither shown nor "
-                       f"graded; place the {name} point at its opening, a few mm from the wall")
+            out.append(f"the {name} point lies {d.min():.0f} mm from the wall, {DEEP_POINT_WARNING}: the opening "
+                       f"left out about it takes {100 * share:.0f} % of the stomach's wall, neither shown nor graded; "
+                       f"place the {name} point at its opening, a few mm from the wall")
     return out
 
 

@@ -422,9 +422,9 @@ def test_clicks_moved_off_their_places_are_that_far_from_the_truth_and_the_same_
 def test_the_clicks_table_sets_each_method_beside_its_own_rows_with_the_true_points():
     from StomachUnfoldEval import click_error as ce
 
-    def row(seed, method, err=None, seen=10, grade="excellent", ok=True, group=None, vis=1.0):
+    def row(seed, method, err=None, seen=10, grade="excellent", ok=True, group=None, vis=1.0, warnings=()):
         r = {"name": f"stomach-{seed}/{method}" + (f"-clicks-{err:g}mm-0" if err else ""), "method": method,
-             "group": group or (ce.GROUP if err else "stomachs-tune"), "ok": ok,
+             "group": group or (ce.GROUP if err else "stomachs-tune"), "ok": ok, "warnings": list(warnings),
              "source": {"random": seed, **({"click_error_mm": err} if err else {})}}
         if ok:
             r["quality"] = {"grade": grade, "visible_fraction": vis, "markers": {"seen": seen, "total": 10}}
@@ -432,19 +432,21 @@ def test_the_clicks_table_sets_each_method_beside_its_own_rows_with_the_true_poi
             r["error"] = "AnatomyError: no opening after trimming; check the points"
         return r
     rows = [row(0, "isometric"), row(1, "isometric", seen=9), row(2, "isometric"),     # 2: not run moved: left out
-            row(0, "isometric", 5.0, seen=9), row(1, "isometric", 5.0, grade="good", vis=0.99),
+            row(0, "isometric", 5.0, seen=9, warnings=[f"the cardia point lies 12 mm from the wall, {ce.DEEP_POINT_WARNING}"]),
+            row(1, "isometric", 5.0, grade="good", vis=0.99, warnings=["the points were probably swapped"]),
             row(0, "lscm"), row(1, "lscm"), row(0, "lscm", 5.0, ok=False), row(1, "lscm", 5.0),
             row(1000, "isometric", 5.0, group=ce.GROUP)]
     summ = {(x["set"], x["method"], x["error_mm"]): x for x in ce.click_error_summary(rows, [0, 1, 2], [1000])}
     t0, t5 = summ[("tuning", "isometric", 0.0)], summ[("tuning", "isometric", 5.0)]
     assert (t0["runs"], t0["markers_seen"], t0["fewer_markers"]) == (2, 19, 0)
     assert (t5["runs"], t5["excellent"], t5["good_or_better"], t5["markers_seen"], t5["fewer_markers"]) == (2, 1, 2, 19, 1)
+    assert (t0["deep_point_warned"], t5["deep_point_warned"]) == (0, 1)
     assert t5["visible_min"] == pytest.approx(0.99)
     l5 = summ[("tuning", "lscm", 5.0)]
     assert (l5["runs"], l5["failed"]) == (2, 1) and list(l5["errors"].values()) == [1]
     assert summ[("held-out", "isometric", 5.0)]["runs"] == 1 and ("held-out", "isometric", 0.0) not in summ
     md = "\n".join(ce.click_error_markdown(rows, [0, 1, 2], [1000]))
-    assert "| tuning | isometric | 5 | 2 | 0 | 1 | 2 | 99.50 / 99.00 | 19/20 | 1 |" in md
+    assert "| tuning | isometric | 5 | 2 | 0 | 1 | 2 | 99.50 / 99.00 | 19/20 | 1 | 1 |" in md
     assert 'lscm 1x "AnatomyError: no opening after trimming"' in md
     assert ce.click_error_markdown(rows[:3], [0, 1, 2], [1000]) == []                 # not run: no table
 
