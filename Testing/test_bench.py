@@ -432,7 +432,7 @@ def test_the_clicks_table_sets_each_method_beside_its_own_rows_with_the_true_poi
             r["error"] = "AnatomyError: no opening after trimming; check the points"
         return r
     rows = [row(0, "isometric"), row(1, "isometric", seen=9), row(2, "isometric"),     # 2: not run moved: left out
-            row(0, "isometric", 5.0, seen=9, warnings=[f"the cardia point lies 12 mm from the wall, {ce.DEEP_POINT_WARNING}"]),
+            row(0, "isometric", 5.0, seen=9, warnings=[f"the cardia point lies 12 mm off, {ce.DEEP_POINT_WARNING}"]),
             row(1, "isometric", 5.0, grade="good", vis=0.99, warnings=["the points were probably swapped"]),
             row(0, "lscm"), row(1, "lscm"), row(0, "lscm", 5.0, ok=False), row(1, "lscm", 5.0),
             row(1000, "isometric", 5.0, group=ce.GROUP)]

@@ -113,13 +113,13 @@ def test_a_point_clicked_deep_in_a_wide_lumen_is_warned_of_and_a_point_at_its_op
 
     vol, cl = _ball_with_side_tube()  # the cardia 5 mm from the wall by the gas tube, the pylorus 5 mm from the wall
     assert opening_warnings(vol, cl) == []
-    # the cardia clicked 13 mm from the wall: its opening would reach 26 mm, the wall behind it 28 mm away
+    # the cardia clicked 13 mm from the wall: its opening reaches 26 mm, while the wall behind it reaches 28 mm
     deep = np.stack([np.linspace(12.0, -20.0, 17), np.zeros(17), np.zeros(17)], 1)
     w = opening_warnings(vol, deep)
     assert len(w) == 1 and w[0].startswith(("the cardia point lies 12 mm from the wall", "the cardia point lies 13 mm"))
     share = float(w[0].split("takes ")[1].split(" %")[0])   # the cap from 10 to 25 mm behind the point, of the ball
     assert 10 <= share <= 40
-    # the end of a tube (a cylinder whose end point sits in its middle, 12 mm from its round end): the whole end opens
+    # the end of a tube (a cylinder whose end point sits on its axis, 12 mm from its flat end): the whole end opens
     g = (np.arange(61) - 30).astype(float)
     z, y, x = np.meshgrid(g, g, np.arange(121) - 60.0, indexing="ij")
     tube = Volume(((y ** 2 + z ** 2 <= 15.0 ** 2) & (np.abs(x) <= 50.0)).astype(np.uint8), [1.0, 1.0, 1.0],
