@@ -665,6 +665,23 @@ def test_the_strain_limit_relieves_a_stretched_boundary_and_leaves_the_rest():
     assert np.array_equal(same, g) and info2["stretched_triangles_before"] == 0 and info2["stretch_move_mm"] == 0.0
 
 
+def test_triangles_the_global_step_turned_over_go_back_alone_not_the_whole_step():
+    from StomachUnfoldLib.methods.isometric import signed_area_2d, undo_turned
+
+    n = 12
+    f = _grid(n, n)
+    uv0 = np.stack(np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij"), -1).reshape(-1, 2)
+    sign0 = np.sign(signed_area_2d(uv0, f))
+    uv = uv0 * 1.01                                     # the step moved every vertex a little ...
+    uv[3 * n + 3] += [2.5, 0.0]                         # ... and one far past its neighbours: its triangles turn over
+    assert np.any(np.sign(signed_area_2d(uv, f)) != sign0)
+    assert undo_turned(uv, uv0, f, sign0, float(sign0[0])) == 0
+    assert np.all(np.sign(signed_area_2d(uv, f)) == sign0)
+    back = np.all(uv == uv0, axis=1)
+    assert back[3 * n + 3] and 3 <= back.sum() <= 20    # that corner and the few round it went back, not the map
+    assert np.allclose(uv[9 * n + 9], 1.01 * uv0[9 * n + 9])
+
+
 def test_the_strain_limit_never_leaves_more_long_springs_than_it_found():
     # a whole map stretched 1.6x along u: the sweeps alone shrink it from its free boundary inwards; cut short at 100
     # sweeps they have relieved most triangles (242 -> 32 here), with their default count all of them; the global

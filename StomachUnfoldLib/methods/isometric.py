@@ -105,6 +105,11 @@ STRETCH_SHRINK_MIN = 0.05
 #: ... and where the global step makes the map's outline cross itself, the vertices within these distances (mm) of
 #: the crossing go back to where they were, the nearest first (:func:`undo_crossings`), rather than the whole step
 STRETCH_UNCROSS_MM = (1.0, 2.0, 4.0)
+#: ... and where the global step (or that undoing) turned a triangle over, its corners go back to the input map too, up
+#: to this many times (a ring at a time), rather than the whole step (:func:`undo_turned`). Rule 24: a single turned
+#: triangle had thrown the whole step away, and the sweeps alone left 1.48-1.67x (new seed 33058 with the clicks
+#: moved; 354 and 33029 with a smaller cardia opening tried); 5 rounds were too few on 33029, so 30
+STRETCH_UNTURN_ROUNDS = 30
 #: a triangle of the lumen's iso-surface whose three corners all lie more than that many voxels beyond the CT's first
 #: or last voxel centres is part of the cap that closes a lumen cut off by the scan: the field is padded past the
 #: scan, so the cap sits about 0.05 voxel out on the HU field (padded as tissue) and half a voxel out on a mask's
@@ -832,9 +837,9 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     compression is left), averaged over each vertex's triangles (position-based strain limiting, as for cloth). A
     move that would flip a triangle is undone. Where a whole band is stretched close to the limit, the stretch is
     pushed along it and some triangles stay over, so a global step comes first: up to STRETCH_SOLVES rounds of
-    clamping every triangle over and solving for the whole map at once (one factorisation), undone if it flips a
-    triangle, and only round the crossing where it makes the outline cross itself (:func:`undo_crossings`); the sweeps
-    then finish what it leaves. After it, every STRETCH_CHECK_EVERY sweeps and at the end, the
+    clamping every triangle over and solving for the whole map at once (one factorisation), undone only round the
+    crossing where it makes the outline cross itself (:func:`undo_crossings`) and round a triangle it turns over
+    (:func:`undo_turned`), wholly if one is still turned; the sweeps then finish what it leaves. After it, every STRETCH_CHECK_EVERY sweeps and at the end, the
     map is kept if it has fewer triangles over the limit than the best so far, no boundary crossing itself that the
     input did not have, and no more edges (springs) longer than ``limit`` times their rest length; the input if none
     is. Returns (uv mm, a copy; info: triangles over the limit before and after, global rounds, sweeps, largest move
@@ -891,6 +896,8 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     out[:], solves = _global_strain_limit(fg, xg, Ainv, out, goal, aim, solves, o)
     if solves and not crossed0:
         undo_crossings(out, uv0, bedges)
+    if solves:
+        undo_turned(out, uv0, fg, sign0, o)
     sign1 = np.sign(signed_area_2d(out, fg))
     if solves and not np.any((sign1 != sign0) & (sign0 == o)):      # none turned over (one turned back is fine)
         s1 = jacobians(np.arange(len(fg)))[1]
@@ -958,6 +965,19 @@ def undo_crossings(uv: np.ndarray, uv0: np.ndarray, bedges: np.ndarray) -> None:
         back = np.unique(np.concatenate([np.asarray(i, np.int64) for i in tree.query_ball_point(at, reach)]))
         uv[back] = uv0[back]
         at = boundary_crossings(uv, bedges)
+
+
+def undo_turned(uv: np.ndarray, uv0: np.ndarray, f: np.ndarray, sign0: np.ndarray, orientation: float = 1.0) -> int:
+    """Move the corners of each triangle of ``f`` that the map ``uv`` (V,2 mm) turned over against the input ``uv0``
+    (``sign0``: the triangles' signs there; ``orientation``: the map's, +1 or -1) back to ``uv0``, a ring at a time
+    until none is turned, at most STRETCH_UNTURN_ROUNDS times; in place. Returns the triangles still turned over."""
+    for _ in range(STRETCH_UNTURN_ROUNDS):
+        turned = (np.sign(signed_area_2d(uv, f)) != sign0) & (sign0 == orientation)
+        if not turned.any():
+            return 0
+        back = np.unique(f[turned])
+        uv[back] = uv0[back]
+    return int(np.sum((np.sign(signed_area_2d(uv, f)) != sign0) & (sign0 == orientation)))
 
 
 def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.ndarray,
