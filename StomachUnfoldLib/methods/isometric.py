@@ -842,8 +842,8 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     (:func:`undo_turned`), wholly if one is still turned; the sweeps then finish what it leaves. After it, every
     STRETCH_CHECK_EVERY sweeps and at the end, the map is kept if it has fewer triangles over the limit than the best
     so far, no boundary crossing itself that the input did not have, and no more edges (springs) longer than
-    ``limit`` times their rest length; the input if none is. Returns (uv mm, a copy; info: triangles over the limit before and after, global rounds, sweeps, largest move
-    in mm).
+    ``limit`` times their rest length; the input if none is. Returns (uv mm, a copy; info: triangles over the limit
+    before and after, global rounds, sweeps, largest move in mm).
     """
     limit = STRETCH_LIMIT if limit is None else float(limit)
     sweeps = STRETCH_SWEEPS if sweeps is None else int(sweeps)
