@@ -971,13 +971,17 @@ def undo_turned(uv: np.ndarray, uv0: np.ndarray, f: np.ndarray, sign0: np.ndarra
     """Move the corners of each triangle of ``f`` that the map ``uv`` (V,2 mm) turned over against the input ``uv0``
     (``sign0``: the triangles' signs there; ``orientation``: the map's, +1 or -1) back to ``uv0``, a ring at a time
     until none is turned, at most STRETCH_UNTURN_ROUNDS times; in place. Returns the triangles still turned over."""
+    def turned():
+        return (np.sign(signed_area_2d(uv, f)) != sign0) & (sign0 == orientation)
+
+    now = turned()
     for _ in range(STRETCH_UNTURN_ROUNDS):
-        turned = (np.sign(signed_area_2d(uv, f)) != sign0) & (sign0 == orientation)
-        if not turned.any():
-            return 0
-        back = np.unique(f[turned])
+        if not now.any():
+            break
+        back = np.unique(f[now])
         uv[back] = uv0[back]
-    return int(np.sum((np.sign(signed_area_2d(uv, f)) != sign0) & (sign0 == orientation)))
+        now = turned()
+    return int(now.sum())
 
 
 def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.ndarray,
