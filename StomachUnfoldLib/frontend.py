@@ -79,7 +79,10 @@ class Prepared:
 
     @property
     def pixel_mm(self) -> float:
-        """The input CT's in-plane voxel size (mm): the default spacing of the unfolded view."""
+        """The unfolded view's voxel size (mm, the same along i, j and the depth): ``output_spacing_mm`` when set,
+        else the input CT's in-plane voxel size."""
+        if self.params.output_spacing_mm:
+            return float(self.params.output_spacing_mm)
         return float(np.sqrt(self.ct.spacing[0] * self.ct.spacing[1]))
 
     @property

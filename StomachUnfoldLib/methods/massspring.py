@@ -67,7 +67,7 @@ class MassSpring(Method):
             sim = simulate(model, targets, solver, progress=report)
         warnings += sim.warnings
         with timed_stage(progress, "unfolded volume", seconds, *span["unfolded volume"]) as report:
-            out_sp = float(params.output_spacing_mm or prep.pixel_mm)
+            out_sp = prep.pixel_mm
             grid = make_grid(sim.positions, targets.frame, np.full(3, out_sp), margin_mm=2.0)
             clear = prep.lumen if (prep.lumen_is_mask and params.clear_lumen) else None
             unfolded, info_vol = build_unfolded_volume(crop, model.vertices, sim.positions, model.hexes, grid,
