@@ -30,6 +30,19 @@ def shared_file(relative: str) -> str:
     return path
 
 
+def real_slab_with_stomach():
+    """The real 2 mm CT slab (shared CT 02) and its TotalSegmentator stomach label (6) resampled onto it: (Volume,
+    boolean mask (k, j, i)); skips when the shared folder lacks them."""
+    import SimpleITK as sitk
+
+    from StomachUnfoldLib.geometry import Volume
+
+    img = sitk.ReadImage(shared_file(REAL_CT_NAME))
+    seg = sitk.Resample(sitk.ReadImage(shared_file(REAL_SEG_NAME)), img, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
+                        sitk.sitkUInt8)
+    return Volume.from_sitk(img), sitk.GetArrayFromImage(seg) == 6
+
+
 # ----------------------------------------------------------------------------------------- abdomen phantoms
 R = 12.0       # lumen radius (mm)
 WALL = 4.0     # tissue wall (mm)

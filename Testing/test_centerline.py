@@ -9,7 +9,7 @@ from StomachUnfoldLib.centerline import Centerline, compute_centerline
 from StomachUnfoldLib.errors import AnatomyError, Cancelled, PointError
 from StomachUnfoldLib.preprocessing import air_region, bounding_box, snap_to_region
 from StomachUnfoldLib.progress import Progress
-from conftest import (CARDIA, GEOMETRIES, PYLORUS, R, REAL_CT_NAME, REAL_SEG_NAME, shared_file, big_ct, j_axis_distance, make_abdomen, make_grid, seg_dist, voxel_points)
+from conftest import (CARDIA, GEOMETRIES, PYLORUS, R, real_slab_with_stomach, big_ct, j_axis_distance, make_abdomen, make_grid, seg_dist, voxel_points)
 
 
 def tube(spacing, direction, axis_dist, lo, hi, radius):
@@ -218,17 +218,9 @@ def test_full_size_speed():
 
 
 def test_real_ct_slab_with_stomach_label():
-    import SimpleITK as sitk
-
-    from StomachUnfoldLib.geometry import Volume
     from StomachUnfoldLib.preprocessing import lumen_from_mask
 
-    REAL_CT, REAL_SEG = shared_file(REAL_CT_NAME), shared_file(REAL_SEG_NAME)
-    img = sitk.ReadImage(REAL_CT)
-    ct = Volume.from_sitk(img)
-    seg = sitk.Resample(sitk.ReadImage(REAL_SEG), img, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
-                        sitk.sitkUInt8)
-    stomach = sitk.GetArrayFromImage(seg) == 6
+    ct, stomach = real_slab_with_stomach()
     pts = ct.voxel_lps(stomach)
     # the slab cuts the stomach across; take the two ends of the label along its longest extent (y)
     a, b = pts[np.argmin(pts[:, 1])], pts[np.argmax(pts[:, 1])]

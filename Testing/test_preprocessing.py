@@ -10,7 +10,7 @@ from StomachUnfoldLib.errors import AnatomyError, InputError, PointError
 from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldLib.preprocessing import (MAX_STOMACH_ML, air_region, bounding_box, lumen_from_mask,
                                             snap_to_region, wall_region)
-from conftest import (CARDIA, GEOMETRIES, PYLORUS, R, REAL_CT_NAME, REAL_SEG_NAME, TUBE_ML, WALL, big_ct, j_axis_distance, make_abdomen, make_grid, shared_file, voxel_points)
+from conftest import (CARDIA, GEOMETRIES, PYLORUS, R, TUBE_ML, WALL, big_ct, j_axis_distance, make_abdomen, make_grid, real_slab_with_stomach, voxel_points)
 
 @pytest.fixture(scope="module", params=list(GEOMETRIES))
 def abdomen(request):
@@ -241,14 +241,7 @@ def test_air_region_full_size_speed():
 
 # ----------------------------------------------------------------------------------------- real CT
 def test_real_ct_slab_stomach_air():
-    import SimpleITK as sitk
-
-    REAL_CT, REAL_SEG = shared_file(REAL_CT_NAME), shared_file(REAL_SEG_NAME)
-    img = sitk.ReadImage(REAL_CT)
-    ct = Volume.from_sitk(img)
-    seg = sitk.Resample(sitk.ReadImage(REAL_SEG), img, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
-                        sitk.sitkUInt8)
-    stomach = sitk.GetArrayFromImage(seg) == 6
+    ct, stomach = real_slab_with_stomach()
     # two points at the two ends of the stomach's main gas pocket
     from scipy import ndimage
 
