@@ -86,6 +86,12 @@ FAMILY_SEED_SETS = (("stomachs-tune", TUNE_SEEDS), ("stomachs-held-out", HELD_OU
                     ("stomachs-fresh-5", FRESH5_SEEDS), ("stomachs-fresh-6", FRESH6_SEEDS),
                     ("stomachs-fresh-7", FRESH7_SEEDS), ("stomachs-fresh-8", FRESH8_SEEDS),
                     ("stomachs-fresh-9", FRESH9_SEEDS))
+#: Random stomachs at the family's other two sizes (``random_stomach.SIZES``; the sets above are all "small", 1.0-1.4 mm
+#: in-plane): "tiny" (1.7-2.1 mm in-plane, 2.0-2.5 mm slices, coarser than clinical) and "full" (512 x 512 at 0.6-0.9
+#: mm in-plane, 0.6-2.5 mm slices, the clinical range). First drawn late on 2026-12-05 to check that the defaults
+#: carry over to other voxel sizes; nothing was tuned or decided on them. The bench part ``sizes`` runs them.
+SIZE_SEED_SETS = (("sizes-tiny", "tiny", tuple(range(34000, 34020))),
+                  ("sizes-full", "full", tuple(range(34000, 34020))))
 #: The held-out sets a bench part of their own runs alone (each is also in ``stomachs``).
 FRESH_PARTS = ("fresh-4", "fresh-5", "fresh-6", "fresh-7", "fresh-8", "fresh-9")
 #: The methods compared on every random stomach, on the same volumes in one run.
@@ -351,6 +357,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
             cases += [c for c in family_cases(quick, None) if c["group"] in fresh]
     if "zeroclicks" in parts:
         cases += zero_click_cases(quick)
+    if "sizes" in parts:
+        cases += size_cases(quick)
     if "meshsize" in parts:
         cases += mesh_size_cases(quick)
     if "clicks" in parts:
@@ -543,6 +551,14 @@ def zero_click_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
             cases.append(Case(f"stomach-{seed}/{FAMILY_METHODS[0]}-zero-clicks", src, {}, method=FAMILY_METHODS[0],
                               group=group))
     return cases
+
+
+def size_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
+    """Every FAMILY_METHODS on the random stomachs of SIZE_SEED_SETS (tiny and full size; quick: two tiny ones)."""
+    cache = _phantom_cache(cache_dir)
+    sets = [(g, size, seeds[:2]) for g, size, seeds in SIZE_SEED_SETS[:1]] if quick else SIZE_SEED_SETS
+    return [Case(f"stomach-{seed}-{size}/{m}", {"random": int(seed), "size": size, "_cache": cache}, {}, method=m,
+                 group=group) for group, size, seeds in sets for seed in seeds for m in FAMILY_METHODS]
 
 
 def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None) -> list[dict]:
@@ -1120,7 +1136,11 @@ FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults we
                                       "2026-12-05 to decide on the stomach-plane incision again, rule 14: not kept)"),
                  ("stomachs-fresh-9", "Random stomachs, seeds 11000-11029 (a tenth held-out set, drawn with the "
                                       "ninth for rule 14)"),
-                 ("stomachs-hybrid", "Drawn stomachs inserted into the real CTs (held out)"))
+                 ("stomachs-hybrid", "Drawn stomachs inserted into the real CTs (held out)"),
+                 ("sizes-tiny", "Random stomachs drawn tiny, seeds 34000-34019 (1.7-2.1 mm in-plane, 2.0-2.5 mm "
+                                "slices; never tuned on)"),
+                 ("sizes-full", "Random stomachs drawn full size, seeds 34000-34019 (512 x 512 at 0.6-0.9 mm, "
+                                "0.6-2.5 mm slices; never tuned on)"))
 
 
 def family_summary(rows: list[dict], group: str) -> dict:

@@ -393,6 +393,26 @@ def test_a_fresh_part_runs_that_set_alone_with_every_method(part, seeds):
     assert whole == [c["name"] for c in alone]
 
 
+def test_the_sizes_part_runs_every_method_on_tiny_and_full_size_stomachs_of_its_own_seeds():
+    from StomachUnfoldLib.cli import BENCH_DEFAULT_PARTS, BENCH_PARTS
+    from StomachUnfoldEval.random_stomach import SIZES
+
+    assert "sizes" in BENCH_PARTS and "sizes" in BENCH_DEFAULT_PARTS
+    cases = bench._cases(False, False, None, ["sizes"])
+    assert {(c["group"], c["source"]["size"]) for c in cases} == {("sizes-tiny", "tiny"), ("sizes-full", "full")}
+    assert {c["source"]["size"] for c in cases} <= set(SIZES) - {"small"}
+    assert len(cases) == sum(len(seeds) for _, _, seeds in bench.SIZE_SEED_SETS) * len(bench.FAMILY_METHODS)
+    assert len({(c["group"], c["name"]) for c in cases}) == len(cases)
+    # never a seed of the small sets: none of these volumes was tuned or decided on
+    small = set(bench.TUNE_SEEDS).union(*(seeds for _, seeds in bench.FAMILY_SEED_SETS))
+    assert not small & {c["source"]["random"] for c in cases}
+    assert not any(c["group"].startswith("stomachs") for c in cases)   # kept out of the small sets' chart
+    titles = dict(bench.FAMILY_GROUPS)
+    assert "sizes-tiny" in titles and "sizes-full" in titles
+    quick = bench.size_cases(quick=True)
+    assert {c["group"] for c in quick} == {"sizes-tiny"} and len(quick) == 2 * len(bench.FAMILY_METHODS)
+
+
 def test_clicks_moved_off_their_places_are_that_far_from_the_truth_and_the_same_for_every_method(tmp_path):
     from StomachUnfoldEval import click_error as ce
 
