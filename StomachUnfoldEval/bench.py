@@ -554,11 +554,18 @@ def zero_click_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
 
 
 def size_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
-    """Every FAMILY_METHODS on the random stomachs of SIZE_SEED_SETS (tiny and full size; quick: two tiny ones)."""
+    """Every FAMILY_METHODS on the random stomachs of SIZE_SEED_SETS (tiny and full size; quick: two tiny ones), and
+    the default method from the points found automatically (zero clicks)."""
     cache = _phantom_cache(cache_dir)
     sets = [(g, size, seeds[:2]) for g, size, seeds in SIZE_SEED_SETS[:1]] if quick else SIZE_SEED_SETS
-    return [Case(f"stomach-{seed}-{size}/{m}", {"random": int(seed), "size": size, "_cache": cache}, {}, method=m,
-                 group=group) for group, size, seeds in sets for seed in seeds for m in FAMILY_METHODS]
+    cases = []
+    for group, size, seeds in sets:
+        for seed in seeds:
+            src = {"random": int(seed), "size": size, "_cache": cache}
+            cases += [Case(f"stomach-{seed}-{size}/{m}", src, {}, method=m, group=group) for m in FAMILY_METHODS]
+            cases.append(Case(f"stomach-{seed}-{size}/{FAMILY_METHODS[0]}-zero-clicks", dict(src, auto_points=True), {},
+                              method=FAMILY_METHODS[0], group=group))
+    return cases
 
 
 def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None) -> list[dict]:

@@ -401,7 +401,11 @@ def test_the_sizes_part_runs_every_method_on_tiny_and_full_size_stomachs_of_its_
     cases = bench._cases(False, False, None, ["sizes"])
     assert {(c["group"], c["source"]["size"]) for c in cases} == {("sizes-tiny", "tiny"), ("sizes-full", "full")}
     assert {c["source"]["size"] for c in cases} <= set(SIZES) - {"small"}
-    assert len(cases) == sum(len(seeds) for _, _, seeds in bench.SIZE_SEED_SETS) * len(bench.FAMILY_METHODS)
+    # every method with the two true points, and the default from the points it finds (zero clicks)
+    assert len(cases) == sum(len(seeds) for _, _, seeds in bench.SIZE_SEED_SETS) * (len(bench.FAMILY_METHODS) + 1)
+    zero = [c for c in cases if c["source"].get("auto_points")]
+    assert {c["method"] for c in zero} == {bench.FAMILY_METHODS[0]} and len(zero) == 40
+    assert all(c["name"].endswith("-zero-clicks") for c in zero)
     assert len({(c["group"], c["name"]) for c in cases}) == len(cases)
     # never a seed of the small sets: none of these volumes was tuned or decided on
     small = set(bench.TUNE_SEEDS).union(*(seeds for _, seeds in bench.FAMILY_SEED_SETS))
@@ -410,7 +414,7 @@ def test_the_sizes_part_runs_every_method_on_tiny_and_full_size_stomachs_of_its_
     titles = dict(bench.FAMILY_GROUPS)
     assert "sizes-tiny" in titles and "sizes-full" in titles
     quick = bench.size_cases(quick=True)
-    assert {c["group"] for c in quick} == {"sizes-tiny"} and len(quick) == 2 * len(bench.FAMILY_METHODS)
+    assert {c["group"] for c in quick} == {"sizes-tiny"} and len(quick) == 2 * (len(bench.FAMILY_METHODS) + 1)
 
 
 def test_clicks_moved_off_their_places_are_that_far_from_the_truth_and_the_same_for_every_method(tmp_path):
