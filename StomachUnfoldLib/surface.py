@@ -616,7 +616,7 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
     nj = int(np.ceil(uv[:, 1].max() / s)) + 2
     if ni * nj > 25_000_000:
         raise SimulationError(f"the flattened surface spans {ni} x {nj} pixels: the conformal map degenerated")
-    tri, bary, hits = view_raster(uv, f, (nj, ni), s, progress)
+    tri, bary, hits = view_raster(uv, f, (nj, ni), s, progress, open_mouths=True)
     covered = tri >= 0
     depths, k0, nk = depth_axis(s, w)
     tt = tri[covered]
@@ -682,13 +682,85 @@ def fill_pinholes(arr: np.ndarray, max_pixels: int = PINHOLE_PIXELS, tri: np.nda
     return filled
 
 
-def view_raster(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float, prog: Progress | None = None):
+def view_raster(uv: np.ndarray, f: np.ndarray, shape_ji: tuple[int, int], s: float, prog: Progress | None = None,
+                open_mouths: bool = False):
     """The pixels (j, i; pixel s mm, centres at (i*s, j*s) mm) a flat map (uv mm) covers in the view, as
     :func:`rasterise` gives them and extended by the outline's rim and closed cracks (:func:`_rim`): returns
-    (triangle id per pixel, -1 none; barycentrics; triangles holding the pixel centre strictly inside)."""
+    (triangle id per pixel, -1 none; barycentrics; triangles holding the pixel centre strictly inside). With
+    ``open_mouths`` (the view itself), a notch's mouth the rim closed is opened again (:func:`_open_mouths`)."""
     tri, bary, hits = rasterise(uv, f, shape_ji, s, prog or (lambda fraction: None))
     tri, bary = _rim(uv, f, tri, bary, s)
+    if open_mouths:
+        _open_mouths(uv, f, tri, s)
     return tri, bary, hits
+
+
+MOUTH_FINE = 4        # the finer raster that finds where a gap of the view meets the outside: pixels per view pixel
+MOUTH_REACH_PX = 16   # how far (view pixels) about an enclosed gap the way out to the outside is looked for
+
+
+def _open_mouths(uv, f, tri, s):
+    """Reopen (in place: ``tri`` -1) the mouth that the raster's rim closed between an enclosed gap of the view and its
+    outside, where the flat map (uv mm, pixel s mm) leaves a way between them narrower than a pixel.
+
+    The outline's rim (:func:`_rim`) draws every pixel an outline edge reaches, so a notch of the map whose sides come
+    within about a pixel (the cardia's opening, laid out between the fundus on both sides of the incision) is drawn
+    closed at its mouth: a gap inside the mucosa, which the judge counts as a hole, though the map has none there. A gap
+    of more than PINHOLE_PIXELS pixels is looked at in a raster MOUTH_FINE times finer (within MOUTH_REACH_PX pixels of
+    it): when its uncovered points reach the view's outside there, the view pixels on the shortest such way (4-connected)
+    are left uncovered, so the notch stays open as the map draws it. A gap the map itself encloses (a peeled fold's) has
+    no way out and stays. Returns the number of pixels reopened."""
+    covered = tri >= 0
+    enclosed = ndimage.binary_fill_holes(covered) & ~covered
+    if not enclosed.any():
+        return 0
+    lab, n = ndimage.label(enclosed)
+    sizes = np.bincount(lab.ravel())
+    cross = ndimage.generate_binary_structure(2, 1)
+    nj, ni = tri.shape
+    F, R = MOUTH_FINE, MOUTH_REACH_PX
+    corners = np.take(uv, f, axis=0) / s                            # (F,3,2) pixel units
+    t_lo, t_hi = corners.min(1), corners.max(1)
+    opened = 0
+    for r in np.flatnonzero(sizes[1:] > PINHOLE_PIXELS) + 1:
+        outside = ~(tri >= 0) & ~ndimage.binary_fill_holes(tri >= 0)
+        jj, ii = np.nonzero(lab == r)
+        j0, j1 = max(jj.min() - R, 0), min(jj.max() + R, nj - 1)
+        i0, i1 = max(ii.min() - R, 0), min(ii.max() + R, ni - 1)
+        near = np.flatnonzero((t_hi[:, 0] >= i0 - 1) & (t_lo[:, 0] <= i1 + 1) & (t_hi[:, 1] >= j0 - 1)
+                              & (t_lo[:, 1] <= j1 + 1))
+        # the finer raster of the box: fine pixel (J, I) centred at view pixel (j0 + J / F, i0 + I / F)
+        shape = ((j1 - j0) * F + 1, (i1 - i0) * F + 1)
+        origin = np.array([i0, j0], float) * s
+        fine, _, _ = rasterise(uv - origin, f[near], shape, s / F, lambda fraction: None)
+        free = fine < 0
+        J, I = np.mgrid[0:shape[0], 0:shape[1]]
+        cj, ci = j0 + np.rint(J / F).astype(int), i0 + np.rint(I / F).astype(int)
+        dist = np.where((lab[cj, ci] == r) & free, 0, -1)
+        front, step, hit = dist == 0, 0, None
+        goal = outside[cj, ci] & free
+        while front.any() and hit is None:
+            step += 1
+            front = ndimage.binary_dilation(front, cross) & free & (dist < 0)
+            dist[front] = step
+            if (front & goal).any():
+                hit = tuple(np.argwhere(front & goal)[0])
+        if hit is None:
+            continue                                                # no way out within reach: the map's own gap
+        way = [hit]
+        while dist[way[-1]] > 0:                                    # back along the 4-connected shortest way
+            y, x = way[-1]
+            for dy, dx in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+                yy, xx = y + dy, x + dx
+                if 0 <= yy < shape[0] and 0 <= xx < shape[1] and dist[yy, xx] == dist[y, x] - 1:
+                    way.append((yy, xx))
+                    break
+        yy, xx = np.array(way).T
+        pj, pi = cj[yy, xx], ci[yy, xx]
+        shut = tri[pj, pi] >= 0
+        opened += int(len(set(zip(pj[shut].tolist(), pi[shut].tolist()))))
+        tri[pj[shut], pi[shut]] = -1
+    return opened
 
 
 def _rim(uv, f, tri, bary, s):

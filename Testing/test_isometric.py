@@ -489,6 +489,55 @@ def test_boundary_straightening_acts_only_where_asked():
     assert bump(uv_half, right, 1) < 0.3 and bump(uv_half, left, -1) > 0.45    # only the right one
 
 
+def _frame(slit_mm):
+    """A 24 x 24 mm sheet of 1 mm squares with an 8 x 8 mm gap in its middle and, for ``slit_mm`` > 0, a slit that wide
+    from the gap to the sheet's left edge (its sides pulled apart by half of it each, tapering to nothing at x = 16 mm):
+    the keyhole a cardia's opening makes between the fundus on both sides of the incision. (uv mm, triangles)."""
+    n = 25
+    U, V = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    uv = np.stack([U.ravel(), V.ravel()], 1)
+    f = _grid(n, n)
+    c = uv[f].mean(1)
+    f = f[~((np.abs(c[:, 0] - 12.0) < 4.0) & (np.abs(c[:, 1] - 12.0) < 4.0))]
+    if slit_mm > 0:
+        on = np.flatnonzero((uv[:, 1] == 12.0) & (uv[:, 0] <= 8.0))        # the slit's vertices, duplicated
+        copy = np.full(len(uv), -1)
+        copy[on] = len(uv) + np.arange(len(on))
+        below = uv[f].mean(1)[:, 1] < 12.0
+        fb = f[below]
+        fb[np.isin(fb, on)] = copy[fb[np.isin(fb, on)]]
+        f = np.vstack([f[~below], fb])
+        uv = np.vstack([uv, uv[on]])
+        side = np.where(np.arange(len(uv)) >= n * n, -1.0, np.sign(uv[:, 1] - 12.0 + 1e-9))
+        uv[:, 1] += side * 0.5 * slit_mm * np.clip((16.0 - uv[:, 0]) / 8.0, 0.0, 1.0) * (uv[:, 0] <= 16.0)
+    return uv + 2.0, f
+
+
+def test_the_view_keeps_open_a_notch_whose_mouth_the_rim_would_close():
+    from scipy import ndimage
+
+    from StomachUnfoldLib.surface import view_raster
+
+    s, shape = 1.0, (29, 29)
+
+    def gaps(tri):
+        cov = tri >= 0
+        return ndimage.binary_fill_holes(cov) & ~cov
+
+    uv, f = _frame(0.4)                                   # a slit under half a pixel wide
+    rim_only = view_raster(uv, f, shape, s)[0]            # as the flat map's own checks raster it
+    assert gaps(rim_only).sum() > 25                     # the rim shuts the slit: the gap is enclosed, a "hole"
+    tri = view_raster(uv, f, shape, s, open_mouths=True)[0]
+    assert not gaps(tri).any()                           # the view keeps its mouth open to the outside
+    opened = (rim_only >= 0) & (tri < 0)
+    assert 1 <= opened.sum() <= 10 and np.all(np.abs(np.nonzero(opened)[0] - 14.0) <= 1)  # along the slit (y = 14)
+    assert np.array_equal(tri[~opened], rim_only[~opened])
+    closed_uv, closed_f = _frame(0.0)                     # no slit: the map's own gap stays a gap, nothing reopened
+    tri0 = view_raster(closed_uv, closed_f, shape, s, open_mouths=True)[0]
+    assert gaps(tri0).sum() > 25
+    np.testing.assert_array_equal(tri0, view_raster(closed_uv, closed_f, shape, s)[0])
+
+
 def test_a_map_that_pinches_a_notch_shut_gives_way_to_the_whole_boundary_straightened():
     # a 40 x 20 mm sheet with a 4 mm wide notch cut down from its top edge (the cardia's opening with the incision
     # running off it); map A presses the notch's neck shut (a slot inside the outline), map B keeps it open
