@@ -561,8 +561,8 @@ def test_a_map_that_pinches_a_notch_shut_gives_way_to_the_whole_boundary_straigh
     pinched = np.stack([x - np.sign(x - 20.0) * shift, y], 1)        # the neck's two sides meet at x = 20 mm
     s = 0.5
     assert largest_defect_mm2(pinched, f, s) > 25.0 and largest_defect_mm2(rest[:, :2], f, s) < 25.0
-    # a neck left 0.3 mm open (under a pixel): the raster alone keeps a channel of pixel centres to the outside,
-    # but the view's rim closes it, so the judge would see a slot, and so does the check
+    # a neck left 0.3 mm open (under a pixel): the raster alone keeps a channel of pixel centres to the outside, but
+    # the rim closes it: the check counts the slot (the view itself reopens such a mouth, see the keyhole test above)
     from scipy import ndimage
 
     from StomachUnfoldLib.surface import rasterise

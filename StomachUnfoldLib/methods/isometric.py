@@ -1829,8 +1829,9 @@ def largest_defect_mm2(uv: np.ndarray, f: np.ndarray, s: float) -> float:
     (a hole) or that two triangles cover (a fold left after peeling): what the judge counts as a failure part.
 
     The outline is the view's (``surface.view_raster``): its rim (every pixel whose square the map reaches) closes the
-    mouth of a notch whose sides lie within about a pixel, and the judge then sees the notch as a hole (a slot inside
-    the mucosa)."""
+    mouth of a notch whose sides lie within about a pixel, a slot inside the mucosa. The view itself opens such a mouth
+    again (``open_mouths``); this check does not, so a map that shuts a notch to within a pixel still gives way to a
+    straighter one (the maps chosen are those of before that change)."""
     from ..surface import view_raster
 
     q = uv - uv.min(0) + s
