@@ -896,10 +896,9 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     out[:], solves = _global_strain_limit(fg, xg, Ainv, out, goal, aim, solves, o)
     if solves and not crossed0:
         undo_crossings(out, uv0, bedges)
-    if solves:
-        undo_turned(out, uv0, fg, sign0, o)
+    still_turned = undo_turned(out, uv0, fg, sign0, o) if solves else 0
     sign1 = np.sign(signed_area_2d(out, fg))
-    if solves and not np.any((sign1 != sign0) & (sign0 == o)):      # none turned over (one turned back is fine)
+    if solves and not still_turned:                                 # none turned over (one turned back is fine)
         s1 = jacobians(np.arange(len(fg)))[1]
         keep_if_better()
     if best[2] is uv0:
