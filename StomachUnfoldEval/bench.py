@@ -92,6 +92,14 @@ FAMILY_SEED_SETS = (("stomachs-tune", TUNE_SEEDS), ("stomachs-held-out", HELD_OU
 #: carry over to other voxel sizes; nothing was tuned or decided on them. The bench part ``sizes`` runs them.
 SIZE_SEED_SETS = (("sizes-tiny", "tiny", tuple(range(34000, 34020))),
                   ("sizes-full", "full", tuple(range(34000, 34020))))
+#: Drawn stomachs inserted into each real CT that holds a whole one (``HYBRID_CTS``: 01 at 3 mm, 03 at 4.25 mm slices;
+#: the 02 slab is too thin), twenty seeds a set: real organs, colon gas and lung bases round the stomach, on thick
+#: slices, where the beads are drawn as large as a slice (4.25 mm in radius in 03). First run on 2026-12-06: rule 26
+#: (bumps bridged, ``isometric.bridge_bumps``) was developed on ``hybrids-dev`` and decided on ``hybrids-decide``,
+#: which had never been run before. The bench part ``hybrids-many`` runs them.
+HYBRID_SEED_SETS = (("hybrids-dev", tuple(range(40000, 40020))), ("hybrids-decide", tuple(range(41000, 41020))))
+#: The real CTs (file name prefixes in ``../shared/data``) the drawn stomachs of HYBRID_SEED_SETS are inserted into.
+HYBRID_CTS = ("01_", "03_")
 #: The held-out sets a bench part of their own runs alone (each is also in ``stomachs``).
 FRESH_PARTS = ("fresh-4", "fresh-5", "fresh-6", "fresh-7", "fresh-8", "fresh-9")
 #: The methods compared on every random stomach, on the same volumes in one run.
@@ -359,6 +367,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += zero_click_cases(quick)
     if "sizes" in parts:
         cases += size_cases(quick)
+    if "hybrids-many" in parts:
+        cases += hybrid_seed_cases(quick, data_dir)
     if "meshsize" in parts:
         cases += mesh_size_cases(quick)
     if "clicks" in parts:
@@ -565,6 +575,25 @@ def size_cases(quick: bool, cache_dir: str | None = None) -> list[dict]:
             cases += [Case(f"stomach-{seed}-{size}/{m}", src, {}, method=m, group=group) for m in FAMILY_METHODS]
             cases.append(Case(f"stomach-{seed}-{size}/{FAMILY_METHODS[0]}-zero-clicks", dict(src, auto_points=True), {},
                               method=FAMILY_METHODS[0], group=group))
+    return cases
+
+
+def hybrid_seed_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None) -> list[dict]:
+    """Every FAMILY_METHODS on the drawn stomachs of HYBRID_SEED_SETS inserted into each real CT of HYBRID_CTS found in
+    ``data_dir`` (none without it; quick: the first two seeds of the first set)."""
+    cache = _phantom_cache(cache_dir)
+    if not data_dir or not os.path.isdir(data_dir):
+        return []
+    cts = [n for n in sorted(os.listdir(data_dir)) if n.endswith(".nii.gz") and "_seg" not in n
+           and "DERIVED" not in n and n.startswith(HYBRID_CTS)]
+    sets = [(g, seeds[:2]) for g, seeds in HYBRID_SEED_SETS[:1]] if quick else HYBRID_SEED_SETS
+    cases = []
+    for group, seeds in sets:
+        for name in cts:
+            for seed in seeds:
+                src = {"hybrid": int(seed), "ct": os.path.join(data_dir, name), "_cache": cache}
+                cases += [Case(f"hybrid-{name.split('_')[0]}-{seed}/{m}", src, {}, method=m, group=group)
+                          for m in FAMILY_METHODS]
     return cases
 
 
@@ -1147,7 +1176,11 @@ FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults we
                  ("sizes-tiny", "Random stomachs drawn tiny, seeds 34000-34019 (1.7-2.1 mm in-plane, 2.0-2.5 mm "
                                 "slices; never tuned on)"),
                  ("sizes-full", "Random stomachs drawn full size, seeds 34000-34019 (512 x 512 at 0.6-0.9 mm, "
-                                "0.6-2.5 mm slices; never tuned on)"))
+                                "0.6-2.5 mm slices; never tuned on)"),
+                 ("hybrids-dev", "Drawn stomachs in real CTs 01 (3 mm) and 03 (4.25 mm slices), seeds 40000-40019 "
+                                 "(rule 26 was developed on them)"),
+                 ("hybrids-decide", "Drawn stomachs in real CTs 01 (3 mm) and 03 (4.25 mm slices), seeds 41000-41019 "
+                                    "(rule 26's decision set; never tuned on)"))
 
 
 def family_summary(rows: list[dict], group: str) -> dict:

@@ -378,6 +378,29 @@ def test_hybrid_seeds_do_not_depend_on_the_other_sets(tmp_path):
     assert [(c["name"], c["source"]["hybrid"]) for c in alone] == [(c["name"], c["source"]["hybrid"]) for c in hybrids]
 
 
+def test_the_many_hybrids_part_runs_every_method_on_its_seeds_in_the_cts_that_hold_a_whole_stomach(tmp_path):
+    from StomachUnfoldLib.cli import BENCH_DEFAULT_PARTS, BENCH_PARTS
+
+    assert "hybrids-many" in BENCH_PARTS and "hybrids-many" in BENCH_DEFAULT_PARTS
+    for name in ("01_a_ct.nii.gz", "01_a_ct_seg6.nii.gz", "02_b_DERIVED.nii.gz", "02_b_ct.nii.gz", "03_c_ct.nii.gz"):
+        (tmp_path / name).write_bytes(b"")
+    cases = bench._cases(False, False, str(tmp_path), ["hybrids-many"])
+    assert {c["group"] for c in cases} == {"hybrids-dev", "hybrids-decide"}
+    assert {os.path.basename(c["source"]["ct"]) for c in cases} == {"01_a_ct.nii.gz", "03_c_ct.nii.gz"}  # no slab
+    per_set = {g: set(seeds) for g, seeds in bench.HYBRID_SEED_SETS}
+    assert all(c["source"]["hybrid"] in per_set[c["group"]] for c in cases)
+    assert not per_set["hybrids-dev"] & per_set["hybrids-decide"]
+    assert not set(bench.HYBRID_SEEDS) & set().union(*per_set.values())      # not the three hybrids of "stomachs"
+    assert len(cases) == 2 * sum(len(s) for s in per_set.values()) * len(bench.FAMILY_METHODS)
+    assert len({(c["group"], c["name"]) for c in cases}) == len(cases)
+    assert not any(c["group"].startswith("stomachs") for c in cases)        # kept out of the small sets' chart
+    titles = dict(bench.FAMILY_GROUPS)
+    assert "hybrids-dev" in titles and "hybrids-decide" in titles
+    quick = bench.hybrid_seed_cases(True, str(tmp_path))
+    assert {c["group"] for c in quick} == {"hybrids-dev"} and len(quick) == 2 * 2 * len(bench.FAMILY_METHODS)
+    assert bench.hybrid_seed_cases(False, None) == []                       # no real CTs: no hybrids
+
+
 @pytest.mark.parametrize("part,seeds", [("fresh-4", "FRESH4_SEEDS"), ("fresh-5", "FRESH5_SEEDS"),
                                         ("fresh-6", "FRESH6_SEEDS"), ("fresh-7", "FRESH7_SEEDS"),
                                         ("fresh-8", "FRESH8_SEEDS"), ("fresh-9", "FRESH9_SEEDS")])
