@@ -583,10 +583,7 @@ def hybrid_seed_cases(quick: bool, data_dir: str | None, cache_dir: str | None =
     """Every FAMILY_METHODS on the drawn stomachs of HYBRID_SEED_SETS inserted into each real CT of HYBRID_CTS found in
     ``data_dir`` (none without it; quick: the first two seeds of the first set)."""
     cache = _phantom_cache(cache_dir)
-    if not data_dir or not os.path.isdir(data_dir):
-        return []
-    cts = [n for n in sorted(os.listdir(data_dir)) if n.endswith(".nii.gz") and "_seg" not in n
-           and "DERIVED" not in n and n.startswith(HYBRID_CTS)]
+    cts = [n for n in _real_cts(data_dir) if n.startswith(HYBRID_CTS)]
     sets = [(g, seeds[:2]) for g, seeds in HYBRID_SEED_SETS[:1]] if quick else HYBRID_SEED_SETS
     cases = []
     for group, seeds in sets:
@@ -617,14 +614,19 @@ def family_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None
 HYBRID_SEEDS = (1004, 1001, 1005)
 
 
+def _real_cts(data_dir: str | None) -> list[str]:
+    """File names of the real CTs in ``data_dir`` (NIfTI, not the label files), sorted; none without the folder."""
+    if not data_dir or not os.path.isdir(data_dir):
+        return []
+    return [n for n in sorted(os.listdir(data_dir)) if n.endswith(".nii.gz") and "_seg" not in n and "DERIVED" not in n]
+
+
 def hybrid_cases(quick: bool, data_dir: str | None, cache_dir: str | None = None) -> list[dict]:
     """A drawn stomach inserted into each real CT of ``data_dir`` (HYBRID_SEEDS), every FAMILY_METHODS on each."""
     cache = _phantom_cache(cache_dir)
     cases = []
-    if data_dir and os.path.isdir(data_dir) and not quick:
-        names = [n for n in sorted(os.listdir(data_dir))
-                 if n.endswith(".nii.gz") and "_seg" not in n and "DERIVED" not in n]
-        for n, name in enumerate(names):
+    if not quick:
+        for n, name in enumerate(_real_cts(data_dir)):
             seed = HYBRID_SEEDS[n] if n < len(HYBRID_SEEDS) else 1000 + n
             src = {"hybrid": seed, "ct": os.path.join(data_dir, name), "_cache": cache}
             for m in FAMILY_METHODS:
