@@ -897,7 +897,6 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     if solves and not crossed0:
         undo_crossings(out, uv0, bedges)
     still_turned = undo_turned(out, uv0, fg, sign0, o) if solves else 0
-    sign1 = np.sign(signed_area_2d(out, fg))
     if solves and not still_turned:                                 # none turned over (one turned back is fine)
         s1 = jacobians(np.arange(len(fg)))[1]
         keep_if_better()
@@ -905,7 +904,7 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
         out[:], solves = uv0, 0
         s1 = jacobians(np.arange(len(fg)))[1]
     else:
-        sign0 = sign1                                               # the sweeps keep what the global step left
+        sign0 = np.sign(signed_area_2d(out, fg))                    # the sweeps keep what the global step left
     sweep = 0
     for sweep in range(1, sweeps + 1):
         bad = np.flatnonzero(s1 > goal)
