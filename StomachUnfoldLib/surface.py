@@ -85,9 +85,10 @@ def _keep_outer_tissue(cleared: np.ndarray, raw: np.ndarray, depths: np.ndarray)
     cleared[rows] = np.where(deeper, raw[rows], cleared[rows])
 
 
-def depth_axis(s: float, wall_thickness_mm: float):
-    """Depth samples (mm along the outward normal, from the lumen side down) and the k index of depth 0."""
-    n_in = int(np.ceil(INSIDE_MM / s))
+def depth_axis(s: float, wall_thickness_mm: float, extra_inside_mm: float = 0.0):
+    """Depth samples (mm along the outward normal, from the lumen side down) and the k index of depth 0; the samples
+    reach INSIDE_MM plus ``extra_inside_mm`` (mm) into the lumen."""
+    n_in = int(np.ceil((INSIDE_MM + extra_inside_mm) / s))
     n_out = int(np.ceil((wall_thickness_mm + CLEARANCE_MM) / s))
     nk = n_in + n_out + 1
     k = np.arange(nk)
@@ -618,12 +619,16 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
         raise SimulationError(f"the flattened surface spans {ni} x {nj} pixels: the conformal map degenerated")
     tri, bary, hits = view_raster(uv, f, (nj, ni), s, progress, open_mouths=True)
     covered = tri >= 0
-    depths, k0, nk = depth_axis(s, w)
+    lift = getattr(cut, "lift", None)
+    lift = None if lift is None or not np.any(lift > 0) else np.asarray(lift, float)
+    depths, k0, nk = depth_axis(s, w, 0.0 if lift is None else float(lift.max()))
     tt = tri[covered]
     bb = bary[covered]
     surf = np.einsum("nc,ncx->nx", bb, v[f[tt]])
     nrm = unit(np.einsum("nc,ncx->nx", bb, vn[f[tt]]))
     prof = sample_profiles(crop, surf, nrm, depths, lumen if prep.lumen_is_mask else None)
+    if lift is not None:
+        lifted_rays(prof, depths, INSIDE_MM + np.einsum("nc,nc->n", bb, lift[f[tt]]))
     arr = np.full((nk, nj, ni), -1024.0, np.float32)
     jj, ii = np.nonzero(covered)
     arr[:, jj, ii] = prof.T
@@ -636,6 +641,23 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
             "param_overlap_pixel_fraction": float((hits > 1).sum() / max(int(covered.sum()), 1)),
             "pinholes_filled": pinholes}
     return vol, to_unfolded, to_original, mesh, info
+
+
+def lifted_rays(prof: np.ndarray, depths: np.ndarray, reach: np.ndarray) -> None:
+    """Clear (to -1024 HU, in place) what profiles (N, D at ``depths`` mm, the wall's side positive) read above
+    ``reach`` (N, mm into the lumen) and, beyond INSIDE_MM, above the first air (HU at or under TISSUE_HU) met going
+    up from depth 0: where a bridged dome stands above the membrane the map was made of, the ray starts as much higher
+    to draw its top, but stops at the lumen's air, so in a narrow canal it does not read the far wall as well."""
+    prof[depths[None, :] < -reach[:, None] - 1e-9] = -1024.0
+    up = np.flatnonzero(depths <= 0.0)
+    up = up[np.argsort(-depths[up], kind="stable")]           # from depth 0 into the lumen
+    air = np.logical_or.accumulate(prof[:, up] <= TISSUE_HU, axis=1)
+    above = np.zeros_like(air)
+    above[:, 1:] = air[:, :-1]                              # strictly above the first air sample
+    clear = above & (depths[up] < -INSIDE_MM - 1e-9)[None, :]
+    block = prof[:, up]
+    block[clear] = -1024.0
+    prof[:, up] = block
 
 
 PINHOLE_PIXELS = 2   # a view's patch without tissue of at most this many pixels, tissue all round it, is a pinhole

@@ -948,3 +948,77 @@ def test_smoothed_normals_straighten_the_rays_behind_a_small_bump_and_keep_a_sph
     radial = vs / np.linalg.norm(vs, axis=1, keepdims=True)
     off = np.degrees(np.arccos(np.clip(np.sum(ns * radial, 1), -1, 1)))
     assert off[np.abs(radial[:, 2]) < 0.95].max() < 2.0
+
+
+def _wall_with_bumps(step=0.75):
+    """A 60 x 60 mm sheet (z = 0 the wall, the lumen above, +z) with a bead's dome 4.25 mm high at (-15, -10), a fold
+    as high but 50 mm long at u = 15, and a low bump (1.5 mm) at (-15, 15); normals toward the tissue (-z)."""
+    from StomachUnfoldLib.methods.isometric import smooth_normals
+    from StomachUnfoldLib.surface import vertex_normals
+
+    x = np.arange(-30.0, 30.0 + 1e-9, step)
+    U, V = np.meshgrid(x, x, indexing="ij")
+    z = (4.25 * np.exp(-((U + 15) ** 2 + (V + 10) ** 2) / (2 * 2.2 ** 2))
+         + 4.25 * np.exp(-(U - 15) ** 2 / (2 * 2.2 ** 2)) * (np.abs(V) < 25)
+         + 1.5 * np.exp(-((U + 15) ** 2 + (V - 15) ** 2) / (2 * 1.5 ** 2)))
+    v = np.stack([U, V, z], -1).reshape(-1, 3)
+    f = _grid(len(x), len(x))
+    vn, _ = vertex_normals(v, f)
+    vn = -vn * np.sign(vn[:, 2:3])
+    return v, f, smooth_normals(v, f, vn, 2.0)
+
+
+def test_a_beads_dome_is_bridged_and_a_fold_a_low_bump_and_the_flat_wall_are_not():
+    from StomachUnfoldLib.methods.isometric import bridge_bumps
+
+    v, f, vn = _wall_with_bumps()
+    v2, vn2, lift, info = bridge_bumps(v, f, vn)
+    assert info["bridged_bumps"] == 1
+    moved = np.linalg.norm(v2 - v, axis=1) > 1e-9
+    dome = np.hypot(v[:, 0] + 15, v[:, 1] + 10) < 12
+    assert moved.any() and not moved[~dome].any()              # the fold, the low bump, the rest: where they were
+    top = np.argmin(np.hypot(v[:, 0] + 15, v[:, 1] + 10))
+    assert v2[top, 2] < 0.5 * v[top, 2]                         # the dome's top comes down onto the membrane
+    np.testing.assert_allclose(lift[moved], np.linalg.norm(v2 - v, axis=1)[moved])
+    assert lift[top] > 2.0 and np.all(lift[~moved] == 0)        # the rays start as much higher there, nowhere else
+    np.testing.assert_allclose(np.linalg.norm(vn2, axis=1), 1.0, atol=1e-9)
+    assert np.all(vn2[moved, 2] < -0.95)                        # the membrane's normals: the ring's, into the tissue
+    assert 3.0 < info["bridged_height_mm"][0] < 4.5             # measured from the dome's foot
+
+
+def test_a_dome_at_the_boundary_or_as_a_band_round_the_lumen_is_not_bridged():
+    from StomachUnfoldLib.methods.isometric import bridge_bumps
+    from StomachUnfoldLib.surface import vertex_normals
+
+    v, f, vn = _wall_with_bumps()
+    keep = ~(np.abs(v[f][:, :, 0] + 15).max(1) < 1.0)        # a slit through the dome: it touches the boundary now
+    v2, _, lift, info = bridge_bumps(v, f[keep], vn)
+    assert info["bridged_bumps"] == 0 and not lift.any() and np.array_equal(v2, v)
+    # a tube (radius 12 mm) narrowed by a ring 4 mm deep: from the tissue side a groove all round, not a dome
+    nu, nvr = 81, 64
+    z = np.linspace(0, 40, nu)
+    a = np.linspace(0, 2 * np.pi, nvr, endpoint=False)
+    r = 12.0 - 4.0 * np.exp(-(z - 20) ** 2 / (2 * 1.5 ** 2))
+    vt = np.stack([r[:, None] * np.cos(a)[None], r[:, None] * np.sin(a)[None], z[:, None].repeat(nvr, 1)],
+                  -1).reshape(-1, 3)
+    ft = _grid(nu, nvr, closed_v=True)
+    nt, _ = vertex_normals(vt, ft)
+    nt *= np.sign(np.sum(nt * np.c_[vt[:, :2], np.zeros(len(vt))], 1))[:, None]   # away from the axis: the tissue
+    _, _, lift_t, info_t = bridge_bumps(vt, ft, nt, spread_mm=20.0)
+    assert info_t["bridged_bumps"] == 0 and not lift_t.any()
+
+
+def test_a_lifted_ray_reads_the_domes_top_but_stops_at_the_lumens_air():
+    from StomachUnfoldLib.surface import INSIDE_MM, lifted_rays
+
+    depths = np.arange(4.0, -10.01, -0.5)                      # wall side positive, the lumen negative
+    wall = np.where(depths >= 0, 40.0, -1000.0)
+    bead = np.where(depths >= -3.0, 60.0, -1000.0)              # a dome's top 3 mm above the membrane
+    far = bead.copy()
+    far[(depths <= -6.0) & (depths >= -8.0)] = 50.0            # a narrow canal's far wall beyond the lumen's air
+    prof = np.stack([wall, bead, far]).astype(np.float32)
+    lifted_rays(prof, depths, np.array([INSIDE_MM, INSIDE_MM + 6.0, INSIDE_MM + 6.0]))
+    np.testing.assert_array_equal(prof[0], np.where(depths >= -INSIDE_MM - 1e-9, wall, -1024.0))
+    read = depths >= -3.5                                       # the top, 3 mm higher than the wall, and the air on it
+    np.testing.assert_array_equal(prof[1], np.where(read, bead, -1024.0))
+    np.testing.assert_array_equal(prof[2], np.where(read, bead, -1024.0))   # not the far wall
