@@ -95,9 +95,9 @@ SIZE_SEED_SETS = (("sizes-tiny", "tiny", tuple(range(34000, 34020))),
 #: Drawn stomachs inserted into each real CT that holds a whole one (``HYBRID_CTS``: 01 at 3 mm, 03 at 4.25 mm slices;
 #: the 02 slab is too thin), twenty seeds a set: real organs, colon gas and lung bases round the stomach, on thick
 #: slices, where the beads are drawn as large as a slice (4.25 mm in radius in 03). First run on 2026-12-06: rules
-#: 26-28 (bumps bridged, branches try/bridge-bumps-26/27/28; each failed, none on main) were developed on
-#: ``hybrids-dev``, and rule 26 was decided on ``hybrids-decide``, which had never been run before. No method on main
-#: was tuned on either. The bench part ``hybrids-many`` runs them.
+#: 26-29 (bumps bridged; 26-28 failed) and rule 30 (rule 29 rebuilt: ``isometric.bridge_bumps``, off by default,
+#: ``isometric.BRIDGE_DOMES``) were developed on ``hybrids-dev``; rule 26 was decided on ``hybrids-decide``, which had
+#: never been run before. Main's default method was tuned on neither. The bench part ``hybrids-many`` runs them.
 HYBRID_SEED_SETS = (("hybrids-dev", tuple(range(40000, 40020))), ("hybrids-decide", tuple(range(41000, 41020))))
 #: The real CTs (file name prefixes in ``../shared/data``) the drawn stomachs of HYBRID_SEED_SETS are inserted into.
 HYBRID_CTS = ("01_", "03_")
@@ -1181,7 +1181,7 @@ FAMILY_GROUPS = (("stomachs-tune", "Random stomachs, seeds 0-29 (the defaults we
                  ("sizes-full", "Random stomachs drawn full size, seeds 34000-34019 (512 x 512 at 0.6-0.9 mm, "
                                 "0.6-2.5 mm slices; never tuned on)"),
                  ("hybrids-dev", "Drawn stomachs in real CTs 01 (3 mm) and 03 (4.25 mm slices), seeds 40000-40019 "
-                                 "(rules 26-28, not on main, were developed on them)"),
+                                 "(rules 26-30, none the default, were developed on them)"),
                  ("hybrids-decide", "Drawn stomachs in real CTs 01 (3 mm) and 03 (4.25 mm slices), seeds 41000-41019 "
                                     "(rule 26's decision set; main's method was never tuned on them)"))
 
