@@ -183,23 +183,20 @@ PUSH_WEIGHT = 10.0
 PUSH_NEAR_MM = 20.0
 
 
-#: A bead or polyp about as large as the slices are thick stands on the wall as a dome. The flat map would follow the
-#: dome and unroll it, drawing the lesion at about its surface area (twice its footprint) with its centre anywhere on
-#: it. So a ball of BRIDGE_BALL_MM (mm, radius) is rolled over the wall from the tissue side: a dome it cannot enter,
-#: that keeps off the surface's boundary, whose vertices all lie within BRIDGE_SPREAD_MM (mm) of their centroid and that
-#: stands at least BRIDGE_MIN_HEIGHT_MM (mm, a lesion of 5 mm or more) above the membrane spanning its foot, is
-#: replaced by that membrane (uniform Laplacian, the ring round it fixed) for the flat map, and the view's rays start
-#: as much higher there (``lift``), so the lesion is drawn as relief at its footprint (:func:`bridge_bumps`). Where
-#: the bridged map peels a fold or leaves a hole at all, the plain wall is flattened too, and the bridged map is kept
-#: only when its folds and largest hole together are no larger (rule 29 of the benchmark notes: hybrids in the 4.25 mm
-#: slices of CT 03 saw 331 -> 371 of 429 markers; 60 small random stomachs the same to the row, time +1.6 %).
-#: BRIDGE_TOUCH_MM (mm) is the tolerance of a ball's touch, about the mesh's own roughness. The balls touch a dome's
-#: flank near its foot, so the patch they miss is its top alone: it is grown by BRIDGE_GROW_MM (mm) before its height
-#: is taken (hybrids 40000-40019 in CT 03: the top alone stood 1-2.4 mm, the grown patch 3-4.4 mm). The guard looks only at
-#: folds and holes over BRIDGE_GUARD_MM2 (mm^2, half a failure part): a pixel or two of difference is raster noise.
-#: Off: rule 30 passed its decision sets (CT 03 hybrid markers 317 -> 344 of 387, small and tiny stomachs unharmed)
-#: but the bench rerun over every part showed 3 more volumes behind LSCM on visible mucosa (held-out 1016 and 1029,
-#: full-size 34008, which also fell to good): a bridged dome's flank is hidden under its relief. Not kept as default.
+#: A bead or polyp about as large as the slices are thick stands on the wall as a dome. The flat map follows the dome
+#: and unrolls it, drawing the lesion at about its surface area (twice its footprint) with its centre anywhere on it.
+#: :func:`bridge_bumps` finds such domes with a ball of BRIDGE_BALL_MM (mm, radius) rolled over the wall from the tissue
+#: side (a touch within BRIDGE_TOUCH_MM, about the mesh's roughness): a patch it cannot touch, spreading at most
+#: BRIDGE_SPREAD_MM (mm) from its centroid, a disc, whose foot (the patch grown by BRIDGE_GROW_MM, mm: the balls touch
+#: the flank, so the patch is the dome's top alone) keeps off the boundary and stands at least BRIDGE_MIN_HEIGHT_MM
+#: (mm) over the membrane spanning it. The top is replaced by a membrane for the flat map and the view's rays start as
+#: much higher there, so the lesion is drawn as relief at its footprint. Where the bridged map peels folds or leaves a
+#: hole over BRIDGE_GUARD_MM2 (mm^2, half a failure part), the plain wall is flattened too and the map that hides less
+#: is kept. Rule 30 (docs/RULE30_bridged_domes.md; developed on tuning seeds 0-29 and hybrids 40000-40019: 3.0 mm, not
+#: 2.5, kept the tuning ratio median at 1.481 against 1.549) passed its decision sets: CT 03 hybrid markers 317 -> 344
+#: of 387, small and tiny stomachs unharmed. It is off (BRIDGE_DOMES): the bench rerun over every part put 3 more
+#: volumes behind LSCM on visible mucosa (held-out 1016 and 1029, full-size 34008, which fell to good), the domes'
+#: flanks hidden under their relief.
 BRIDGE_DOMES = False
 BRIDGE_BALL_MM = 6.0
 BRIDGE_SPREAD_MM = 10.0
@@ -1238,7 +1235,6 @@ def bridge_bumps(v: np.ndarray, f: np.ndarray, vn: np.ndarray, ball_mm: float = 
     """
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import connected_components
-    from scipy.sparse.linalg import spsolve
     from scipy.spatial import cKDTree
 
     nv = len(v)
