@@ -1268,7 +1268,7 @@ def bridge_bumps(v: np.ndarray, f: np.ndarray, vn: np.ndarray, ball_mm: float = 
         height = float(_membrane(A, v0, foot)[1].max())
         if height < min_height_mm:
             continue
-        x, rise, _, _ = _membrane(A, v0, patch)
+        x, rise = _membrane(A, v0, patch)
         # the rays from the membrane: the wall's normals round the dome's foot, spread over it (not the flank's)
         nrm = _membrane(A, vn, foot)[0][np.searchsorted(foot, patch)]
         v[patch] = x
@@ -1285,17 +1285,17 @@ def _ring(A, patch: np.ndarray) -> np.ndarray:
     return np.setdiff1d(A[patch].indices, patch)
 
 
-def _membrane(A, v: np.ndarray, patch: np.ndarray) -> tuple:
+def _membrane(A, v: np.ndarray, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The membrane over ``patch`` (uniform Laplacian, its ring fixed; adjacency A csr, v LPS mm): (positions (P,3)
-    LPS mm, how far each vertex moved mm, the factorable system and its right side's operator on the ring)."""
+    LPS mm, how far each vertex moved mm)."""
     from scipy.sparse import diags
     from scipy.sparse.linalg import spsolve
 
     sub = A[patch]
+    ring = _ring(A, patch)
     L = (diags(np.asarray(sub.sum(axis=1)).ravel()) - sub[:, patch]).tocsc()
-    rhs = sub[:, _ring(A, patch)]
-    x = np.atleast_2d(spsolve(L, rhs @ v[_ring(A, patch)])).reshape(len(patch), 3)
-    return x, np.linalg.norm(v[patch] - x, axis=1), L, rhs
+    x = np.atleast_2d(spsolve(L, sub[:, ring] @ v[ring])).reshape(len(patch), 3)
+    return x, np.linalg.norm(v[patch] - x, axis=1)
 
 
 def _grown(A, v: np.ndarray, patch: np.ndarray, grow_mm: float) -> np.ndarray:
