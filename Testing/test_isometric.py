@@ -1022,3 +1022,54 @@ def test_a_lifted_ray_reads_the_domes_top_but_stops_at_the_lumens_air():
     read = depths >= -3.5                                       # the top, 3 mm higher than the wall, and the air on it
     np.testing.assert_array_equal(prof[1], np.where(read, bead, -1024.0))
     np.testing.assert_array_equal(prof[2], np.where(read, bead, -1024.0))   # not the far wall
+
+
+def test_a_crossing_of_the_global_strain_step_is_solved_again_with_its_vertices_held():
+    from StomachUnfoldLib.methods import isometric as iso
+
+    # the slit grid of the test above, stretched 1.6x along u (every triangle over the limit); the "global step"
+    # pushed one vertex of the slit's right side over its left side. Solved again from the input with the vertices
+    # by the crossing held softly: the outline does not cross, the stretch is relieved away from them, and they stay
+    # nearer the input than where the same solve without them held puts them
+    n = 11
+    U, V = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    flat = np.stack([U.ravel(), V.ravel()], 1)
+    slit = (flat[:, 0] == 5) & (flat[:, 1] >= 5)
+    flat[slit, 0] -= 0.45
+    right = flat.copy()
+    right[slit, 0] += 0.5
+    flat = np.concatenate([flat, right[slit]])
+    ids = np.arange(n * n).reshape(n, n)
+    dup = np.full(n * n, -1)
+    dup[np.flatnonzero(slit)] = n * n + np.arange(slit.sum())
+    f = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = ids[i, j], ids[i + 1, j], ids[i + 1, j + 1], ids[i, j + 1]
+            if i == 5 and j >= 5:
+                a, d = dup[a], dup[d]
+            f += [[a, b, c], [a, c, d]]
+    f = np.array(f)
+    be = iso._boundary_edges(f)
+    v = np.c_[flat, np.zeros(len(flat))]
+    uv0 = flat * [1.6, 1.0]
+    x, _ = iso.triangle_frames(v, f)
+    Ainv = np.linalg.inv(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]], -1))
+    o = float(np.sign(np.sum(iso.signed_area_2d(uv0, f))))
+    goal, aim = 1.5 * iso.STRETCH_MARGIN, 1.5 * iso.STRETCH_AIM
+    assert len(iso.boundary_crossings(uv0, be)) == 0
+    free, _ = iso._global_strain_limit(f, x, Ainv, uv0, goal, aim, iso.STRETCH_SOLVES, o)
+    assert len(iso.boundary_crossings(free, be)) == 0
+    same, solves = iso._pinned_resolve(f, x, Ainv, uv0, free, be, goal, aim, o)   # nothing crossed: nothing to do
+    assert same is free and solves == 0
+    crossed = free.copy()
+    pushed = n * n + np.flatnonzero(flat[n * n:, 1] == 8)
+    crossed[pushed] -= [1.2, 0.0]
+    assert len(iso.boundary_crossings(crossed, be)) > 0
+    out, solves = iso._pinned_resolve(f, x, Ainv, uv0, crossed, be, goal, aim, o)
+    assert solves > 0 and out is not crossed and len(iso.boundary_crossings(out, be)) == 0
+    s1 = iso._singular_values(iso._jacobians(out, f, Ainv))[0]
+    near = np.linalg.norm(uv0[f].mean(1) - uv0[pushed], axis=1) < 4.0
+    assert s1[~near].max() <= 1.5 and s1.max() < iso._singular_values(iso._jacobians(uv0, f, Ainv))[0].max()
+    held = np.linalg.norm(uv0 - uv0[pushed], axis=1) < 1.0
+    assert np.linalg.norm(out[held] - uv0[held], axis=1).max() < np.linalg.norm(free[held] - uv0[held], axis=1).max()

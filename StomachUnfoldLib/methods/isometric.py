@@ -105,6 +105,11 @@ STRETCH_SHRINK_MIN = 0.05
 #: ... and where the global step makes the map's outline cross itself, the vertices within these distances (mm) of
 #: the crossing go back to where they were, the nearest first (:func:`undo_crossings`), rather than the whole step
 STRETCH_UNCROSS_MM = (1.0, 2.0, 4.0)
+#: ... but first the step is solved again from the input with the vertices within those distances of the crossings
+#: held there by this weight (times the Laplacian's mean diagonal; :func:`_pinned_resolve`); undoing comes only if
+#: that still crosses. Rule 31: on small seed 33404 the undone vertices left 38 triangles over (up to 4.4x) and the
+#: sweeps 12 (1.597x); one solve with 7 vertices held this softly left none (1.475x). 0 turns it off
+STRETCH_PIN_WEIGHT = 0.01
 #: ... and where the global step (or that undoing) turned a triangle over, its corners go back to the input map too, up
 #: to this many times (a ring at a time), rather than the whole step (:func:`undo_turned`). Rule 24: a single turned
 #: triangle had thrown the whole step away, and the sweeps alone left 1.48-1.67x (new seed 33058 with the clicks
@@ -860,9 +865,10 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     compression is left), averaged over each vertex's triangles (position-based strain limiting, as for cloth). A
     move that would flip a triangle is undone. Where a whole band is stretched close to the limit, the stretch is
     pushed along it and some triangles stay over, so a global step comes first: up to STRETCH_SOLVES rounds of
-    clamping every triangle over and solving for the whole map at once (one factorisation), undone only round the
-    crossing where it makes the outline cross itself (:func:`undo_crossings`) and round a triangle it turns over
-    (:func:`undo_turned`), wholly if one is still turned; the sweeps then finish what it leaves. After it, every
+    clamping every triangle over and solving for the whole map at once (one factorisation). Where it makes the outline
+    cross itself it is solved again with the vertices by the crossing held softly (:func:`_pinned_resolve`), and
+    undone only round the crossing if that still crosses (:func:`undo_crossings`); it is undone round a triangle it
+    turns over (:func:`undo_turned`), wholly if one is still turned; the sweeps then finish what it leaves. After it, every
     STRETCH_CHECK_EVERY sweeps and at the end, the map is kept if it has fewer triangles over the limit than the best
     so far, no boundary crossing itself that the input did not have, and no more edges (springs) longer than
     ``limit`` times their rest length; the input if none is. Returns (uv mm, a copy; info: triangles over the limit
@@ -917,6 +923,9 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     # input where it flipped a triangle or was not kept (a boundary crossing itself, more long springs)
     o = float(np.sign(np.sum(sign0)) or 1.0)                        # the map's orientation (it may be mirrored)
     out[:], solves = _global_strain_limit(fg, xg, Ainv, out, goal, aim, solves, o)
+    if solves and not crossed0 and STRETCH_PIN_WEIGHT > 0:
+        out[:], more = _pinned_resolve(fg, xg, Ainv, uv0, out, bedges, goal, aim, o)
+        solves += more
     if solves and not crossed0:
         undo_crossings(out, uv0, bedges)
     still_turned = undo_turned(out, uv0, fg, sign0, o) if solves else 0
@@ -964,6 +973,29 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
                  "stretch_solves": solves, "stretch_move_mm": moved}
 
 
+def _pinned_resolve(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv0: np.ndarray, uv: np.ndarray,
+                    bedges: np.ndarray, goal: float, aim: float, orientation: float) -> tuple[np.ndarray, int]:
+    """Where the global strain step made the map's outline cross itself, solve it again from the input map ``uv0``
+    (V,2 mm) with the vertices within STRETCH_UNCROSS_MM of each crossing (the input's, growing while one remains)
+    held softly where they were (STRETCH_PIN_WEIGHT). Returns (uv mm: the first uncrossed solve, else ``uv``; the
+    solves run)."""
+    from scipy.spatial import cKDTree
+
+    at = boundary_crossings(uv, bedges)
+    if not len(at):
+        return uv, 0
+    tree, pins, total = cKDTree(uv0), np.zeros(0, np.int64), 0
+    for reach in STRETCH_UNCROSS_MM:
+        near = [np.asarray(i, np.int64) for i in tree.query_ball_point(at, reach)]
+        pins = np.union1d(pins, np.concatenate(near))
+        y, n = _global_strain_limit(f, x, Ainv, uv0, goal, aim, STRETCH_SOLVES, orientation, pins=pins)
+        total += n
+        at = boundary_crossings(y, bedges)
+        if not len(at):
+            return y, total
+    return uv, total
+
+
 def undo_crossings(uv: np.ndarray, uv0: np.ndarray, bedges: np.ndarray) -> None:
     """Where the global strain step made the map's outline cross itself, move the vertices within STRETCH_UNCROSS_MM
     (mm, the input map's, growing until the outline is clear) back to the input map ``uv0``; in place.
@@ -1005,8 +1037,9 @@ def undo_turned(uv: np.ndarray, uv0: np.ndarray, f: np.ndarray, sign0: np.ndarra
     return int(now.sum())
 
 
-def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.ndarray,
-                         goal: float, aim: float, rounds: int, orientation: float = 1.0) -> tuple[np.ndarray, int]:
+def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.ndarray, goal: float, aim: float,
+                         rounds: int, orientation: float = 1.0, pins: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, int]:
     """Strain limiting of a flat map (V,2 mm) by projections and one factorisation: returns (uv mm, solves).
 
     Each round clamps the Jacobian of every triangle stretched over ``goal`` to ``aim`` (its nearest Jacobian with s1
@@ -1017,9 +1050,10 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
     pieces that one pinned vertex would not hold, then a rigid fit back onto the input). The correction spreads over the
     whole sheet at once, where the sweeps push it along a band one ring at a time (tuning seeds 23 and 219: 0
     triangles over after 15 and 9 rounds, against 14 and 3 still over after 600 sweeps). Stops when none is over
-    ``goal`` or after ``rounds`` rounds (none: the map as it was).
+    ``goal`` or after ``rounds`` rounds (none: the map as it was). ``pins`` (vertex indices): held towards the input
+    map with STRETCH_PIN_WEIGHT times the Laplacian's mean diagonal, and then no rigid fit (the pins hold it).
     """
-    from scipy.sparse import identity
+    from scipy.sparse import diags
     from scipy.sparse.linalg import splu
 
     if rounds <= 0:
@@ -1029,8 +1063,13 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
     w = 0.5 * _half_edge_cot(x)                                          # (F,3), unclipped: the exact identity
     L = cot_laplacian(f, w, nv)
     eps = 1e-6 * float(np.mean(L.diagonal()))
+    held = np.full(nv, eps)
+    pinned = pins is not None and len(pins) > 0
+    if pinned:
+        held[pins] = STRETCH_PIN_WEIGHT * float(np.mean(L.diagonal()))
+    uv_in = np.asarray(uv, float)
     try:
-        lu = splu((L + eps * identity(nv)).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+        lu = splu((L + diags(held)).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                   options={"SymmetricMode": True})
     except RuntimeError:
         return uv, 0
@@ -1056,8 +1095,10 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
         J[bad] = U @ (S[:, :, None] * Vt)
         # weighted target half-edges J dx_c (3,F) per coordinate, written out (np.einsum("fij,fcj->cfi") to the bit)
         b = np.stack([ends @ ((J[:, k, 0] * dx0 + J[:, k, 1] * dx1) * wT).ravel() for k in range(2)], 1)
-        y = lu.solve(np.ascontiguousarray(b + eps * y))
-        y = _rigid_fit(y, uv)
+        if pinned:
+            y = lu.solve(np.ascontiguousarray(b + held[:, None] * uv_in))
+        else:
+            y = _rigid_fit(lu.solve(np.ascontiguousarray(b + eps * y)), uv)
     return y, rounds
 
 
