@@ -1374,25 +1374,38 @@ def replot(out_dir: str = "docs/benchmark") -> list[str]:
     return made
 
 
+def _only_methods(cases: list[dict], methods) -> list[dict]:
+    """The cases whose method is one of ``methods`` (all of them when None)."""
+    if methods is None:
+        return cases
+    from StomachUnfoldLib.methods import method_names
+
+    unknown = sorted(set(methods) - set(method_names()))
+    if unknown:
+        raise InputError(f"unknown method {', '.join(unknown)}; choose from {', '.join(method_names())}")
+    return [c for c in cases if c["method"] in set(methods)]
+
+
 def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_size: bool = False,
                   scheduler: str | None = None, data_dir: str | None = None,
                   parts=("shapes", "kappa", "sweep", "stability", "resolution", "peers", "real", "scaling",
                          "stomachs", "zeroclicks", "meshsize", "autopoints"),
-                  merge: bool = False) -> list[dict]:
+                  merge: bool = False, methods=None) -> list[dict]:
     """Run the benchmark (all parts, or a quick subset) and write results.json, results.md and PNGs into out_dir.
 
     With ``merge`` the new rows replace the rows of the same name in an existing results.json and the others
-    are kept (the run is listed under meta["merged"]); otherwise results.json holds this run alone.
+    are kept (the run is listed under meta["merged"]); otherwise results.json holds this run alone. ``methods``
+    (names): only the cases of those methods run (e.g. the default method's rows after a change to it alone).
     """
     os.makedirs(out_dir, exist_ok=True)
     t0 = time.perf_counter()
     if data_dir is None:
         here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         data_dir = os.path.join(os.path.dirname(here), "shared", "data")
-    cases = _cases(quick, full_size, data_dir, parts)
+    cases = _only_methods(_cases(quick, full_size, data_dir, parts), methods)
     views = os.path.join(out_dir, "views")
     rows = run_cases(cases, png_dir=views, scheduler=scheduler)
-    for case in _serial_cases(quick, full_size, parts):
+    for case in _only_methods(_serial_cases(quick, full_size, parts), methods):
         rows.append(_isolated(run_case, case, views))
     full = full_size_runs(out_dir) if full_size else None
     if full_size or "memory" in parts:  # peak memory against crop size, each run alone (docs/benchmark/memory.png)

@@ -150,6 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--data-dir", default=None, help="folder of the real CTs (default ../shared/data)")
     b.add_argument("--merge", action="store_true",
                    help="replace only the rerun rows in OUTPUT_DIR/results.json and keep the others")
+    b.add_argument("--methods", default=None,
+                   help="comma-separated methods: run only their cases of the parts (e.g. isometric after a change "
+                        "to it alone; with --merge the other rows are kept)")
     b.add_argument("--replot", action="store_true",
                    help="only redraw the PNGs and results.md from OUTPUT_DIR/results.json (runs nothing)")
 
@@ -548,7 +551,8 @@ def _cmd_bench(args) -> int:
         return 0
     rows = run_benchmark(args.output_dir, quick=args.quick, full_size=args.full_size, scheduler=args.scheduler,
                          data_dir=args.data_dir, parts=tuple(p.strip() for p in args.parts.split(",") if p.strip()),
-                         merge=args.merge)
+                         merge=args.merge,
+                         methods=None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()])
     failed = sum(not r.get("ok") for r in rows)
     print(f"bench: {len(rows)} cases, {failed} failed (as data), results in {args.output_dir}/results.md")
     return 0

@@ -519,3 +519,17 @@ def test_the_area_scale_along_the_centreline_finds_the_stretch_a_view_draws_larg
             {"ok": True, "quality": {"area_scale_along": [1.0, 1.0, 1.0, None]}}, {"ok": False}]
     assert area_scale_summary(rows) == pytest.approx([1.0, 1.0, 1.5, 2.0])
     assert area_scale_summary([{"ok": False}]) is None
+
+
+def test_the_bench_runs_only_the_methods_asked_for():
+    from StomachUnfoldLib.errors import InputError
+
+    cases = bench._cases(False, False, None, ["sizes", "zeroclicks"])
+    assert {c["method"] for c in cases} >= {"isometric", "lscm", "cylindrical", "massspring"}
+    only = bench._only_methods(cases, ["isometric"])
+    assert only and all(c["method"] == "isometric" for c in only)
+    assert len(only) == sum(c["method"] == "isometric" for c in cases)       # zero clicks too (default method)
+    assert any(c["name"].endswith("-zero-clicks") for c in only)
+    assert bench._only_methods(cases, None) is cases
+    with pytest.raises(InputError, match="unknown method isometrik"):
+        bench._only_methods(cases, ["isometrik"])
