@@ -1077,8 +1077,10 @@ def _family_plot(ok: list[dict], out_dir: str, made: list[str], plt) -> None:
 def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) -> str:
     L = [f"# Benchmark\n\nRun {meta['date']} on {meta['machine']['cpus']} CPUs ({meta['machine']['platform']}), "
          f"{meta['wall_seconds']:.0f} s wall time. Every number below is measured in this run"
-         + "".join(f"; the rows of {', '.join(m['parts'])} ({m['cases']} cases) were rerun on {m['date']} with "
-                   "--merge" for m in meta.get("merged", [])) + ".\n"]
+         + "".join(f"; the rows of {', '.join(m['parts'])}"
+                   + (f" ({', '.join(m['methods'])} only)" if m.get("methods") else "")
+                   + f" ({m['cases']} cases) were rerun on {m['date']} with --merge" for m in meta.get("merged", []))
+         + ".\n"]
     for n, f in (full or {}).items():
         ok15 = "met" if f["pipeline_s"] < 15 else "missed"
         L.append(f"## Full-size CT (512 x 512 x {n} at 0.7 mm), method {f.get('method', 'massspring')}\n")
@@ -1356,7 +1358,8 @@ def _merge(old: dict, rows: list[dict], full: dict | None, meta: dict, parts) ->
     """Rows of an earlier results.json with those of this run put in place by group and name (new ones appended;
     one name can be a row of several parts, e.g. ``bent-small/kappa=0.2`` of ``kappa`` and of ``sweep``)."""
     mine = {(r.get("group"), r["name"]): r for r in rows}
-    run = {"date": meta["date"], "parts": list(parts), "cases": len(rows), "wall_seconds": meta["wall_seconds"]}
+    run = {"date": meta["date"], "parts": list(parts), "cases": len(rows), "wall_seconds": meta["wall_seconds"],
+           **({"methods": meta["methods"]} if meta.get("methods") else {})}
     merged = [mine.pop((r.get("group"), r["name"]), r) for r in old["cases"]] + list(mine.values())
     return merged, full or old.get("full_size"), {**old["meta"], "merged": old["meta"].get("merged", []) + [run]}
 
@@ -1412,7 +1415,8 @@ def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_siz
         rows += memory_runs()
     meta = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "wall_seconds": time.perf_counter() - t0,
-            "quick": quick, "scheduler": scheduler or "LocalCluster"}
+            "quick": quick, "scheduler": scheduler or "LocalCluster",
+            **({"methods": list(methods)} if methods is not None else {})}
     path = os.path.join(out_dir, "results.json")
     if merge and os.path.exists(path):
         with open(path) as f:
