@@ -171,19 +171,17 @@ def test_boundary_self_intersection():
     assert boundary_self_intersects(bow, loop)
 
 
-def test_a_crossing_the_global_strain_step_made_is_undone_where_it_is():
-    from StomachUnfoldLib.methods.isometric import undo_crossings, boundary_crossings
-
-    # a grid whose outline has a slit: two boundary stretches 0.05 apart; the "global step" moved the whole map
-    # a little and pushed one side of the slit over the other; only the vertices near the crossing go back
-    n = 11
+def _slit_grid(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A flat n x n grid (1 mm) whose outline has a slit up from its middle: (uv (V,2 mm), triangles). The slit's
+    sides lie 0.05 mm apart; its right side's vertices come after the grid's."""
     U, V = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
-    uv0 = np.stack([U.ravel(), V.ravel()], 1)
-    slit = (uv0[:, 0] == 5) & (uv0[:, 1] >= 5)
-    uv0[slit, 0] -= 0.45                                   # the slit's left side
-    right = uv0.copy()
+    uv = np.stack([U.ravel(), V.ravel()], 1)
+    mid = n // 2
+    slit = (uv[:, 0] == mid) & (uv[:, 1] >= mid)
+    uv[slit, 0] -= 0.45                                    # the slit's left side
+    right = uv.copy()
     right[slit, 0] += 0.5                                  # its right side, 0.05 away
-    uv0 = np.concatenate([uv0, right[slit]])
+    uv = np.concatenate([uv, right[slit]])
     ids = np.arange(n * n).reshape(n, n)
     dup = np.full(n * n, -1)
     dup[np.flatnonzero(slit)] = n * n + np.arange(slit.sum())
@@ -191,10 +189,19 @@ def test_a_crossing_the_global_strain_step_made_is_undone_where_it_is():
     for i in range(n - 1):
         for j in range(n - 1):
             a, b, c, d = ids[i, j], ids[i + 1, j], ids[i + 1, j + 1], ids[i, j + 1]
-            if i == 5 and j >= 5:                          # the cells right of the slit use its right side
+            if i == mid and j >= mid:                      # the cells right of the slit use its right side
                 a, d = dup[a], dup[d]
             f += [[a, b, c], [a, c, d]]
-    f = np.array(f)
+    return uv, np.array(f)
+
+
+def test_a_crossing_the_global_strain_step_made_is_undone_where_it_is():
+    from StomachUnfoldLib.methods.isometric import undo_crossings, boundary_crossings
+
+    # a grid whose outline has a slit: two boundary stretches 0.05 apart; the "global step" moved the whole map
+    # a little and pushed one side of the slit over the other; only the vertices near the crossing go back
+    n = 11
+    uv0, f = _slit_grid(n)
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     ue, cnt = np.unique(e, axis=0, return_counts=True)
     be = ue[cnt == 1]                                      # the outline's edges
@@ -1032,24 +1039,7 @@ def test_a_crossing_of_the_global_strain_step_is_solved_again_with_its_vertices_
     # by the crossing held softly: the outline does not cross, the stretch is relieved away from them, and they stay
     # nearer the input than where the same solve without them held puts them
     n = 11
-    U, V = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
-    flat = np.stack([U.ravel(), V.ravel()], 1)
-    slit = (flat[:, 0] == 5) & (flat[:, 1] >= 5)
-    flat[slit, 0] -= 0.45
-    right = flat.copy()
-    right[slit, 0] += 0.5
-    flat = np.concatenate([flat, right[slit]])
-    ids = np.arange(n * n).reshape(n, n)
-    dup = np.full(n * n, -1)
-    dup[np.flatnonzero(slit)] = n * n + np.arange(slit.sum())
-    f = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = ids[i, j], ids[i + 1, j], ids[i + 1, j + 1], ids[i, j + 1]
-            if i == 5 and j >= 5:
-                a, d = dup[a], dup[d]
-            f += [[a, b, c], [a, c, d]]
-    f = np.array(f)
+    flat, f = _slit_grid(n)
     be = iso._boundary_edges(f)
     v = np.c_[flat, np.zeros(len(flat))]
     uv0 = flat * [1.6, 1.0]
