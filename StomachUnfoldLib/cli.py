@@ -549,10 +549,10 @@ def _cmd_bench(args) -> int:
         made = replot(args.output_dir)
         print(f"bench: redrew {len(made)} PNGs and {args.output_dir}/results.md from results.json")
         return 0
+    methods = None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
     rows = run_benchmark(args.output_dir, quick=args.quick, full_size=args.full_size, scheduler=args.scheduler,
                          data_dir=args.data_dir, parts=tuple(p.strip() for p in args.parts.split(",") if p.strip()),
-                         merge=args.merge,
-                         methods=None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()])
+                         merge=args.merge, methods=methods)
     failed = sum(not r.get("ok") for r in rows)
     print(f"bench: {len(rows)} cases, {failed} failed (as data), results in {args.output_dir}/results.md")
     return 0

@@ -868,11 +868,11 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     clamping every triangle over and solving for the whole map at once (one factorisation). Where it makes the outline
     cross itself it is solved again with the vertices by the crossing held softly (:func:`_pinned_resolve`), and
     undone only round the crossing if that still crosses (:func:`undo_crossings`); it is undone round a triangle it
-    turns over (:func:`undo_turned`), wholly if one is still turned; the sweeps then finish what it leaves. After it, every
-    STRETCH_CHECK_EVERY sweeps and at the end, the map is kept if it has fewer triangles over the limit than the best
-    so far, no boundary crossing itself that the input did not have, and no more edges (springs) longer than
-    ``limit`` times their rest length; the input if none is. Returns (uv mm, a copy; info: triangles over the limit
-    before and after, global rounds, sweeps, largest move in mm).
+    turns over (:func:`undo_turned`), wholly if one is still turned; the sweeps then finish what it leaves. After
+    it, every STRETCH_CHECK_EVERY sweeps and at the end, the map is kept if it has fewer triangles over the limit
+    than the best so far, no boundary crossing itself that the input did not have, and no more edges (springs)
+    longer than ``limit`` times their rest length; the input if none is. Returns (uv mm, a copy; info: triangles
+    over the limit before and after, global rounds, sweeps, largest move in mm).
     """
     limit = STRETCH_LIMIT if limit is None else float(limit)
     sweeps = STRETCH_SWEEPS if sweeps is None else int(sweeps)
