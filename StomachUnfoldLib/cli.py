@@ -542,6 +542,14 @@ def _cmd_bench(args) -> int:
     if unknown or not parts:
         raise InputError(f"unknown benchmark part {', '.join(unknown) or '(none given)'}; choose from "
                          f"{', '.join(BENCH_PARTS)}")
+    methods = None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
+    if methods is not None:
+        from .methods import method_names
+
+        wrong = [m for m in methods if m not in method_names()]
+        if wrong or not methods:
+            raise InputError(f"unknown method {', '.join(wrong) or '(none given)'}; choose from "
+                             f"{', '.join(method_names())}")
     check_output_folder(args.output_dir)
     from StomachUnfoldEval.bench import replot, run_benchmark
 
@@ -549,7 +557,6 @@ def _cmd_bench(args) -> int:
         made = replot(args.output_dir)
         print(f"bench: redrew {len(made)} PNGs and {args.output_dir}/results.md from results.json")
         return 0
-    methods = None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
     rows = run_benchmark(args.output_dir, quick=args.quick, full_size=args.full_size, scheduler=args.scheduler,
                          data_dir=args.data_dir, parts=tuple(p.strip() for p in args.parts.split(",") if p.strip()),
                          merge=args.merge, methods=methods)

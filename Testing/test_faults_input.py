@@ -249,6 +249,8 @@ def test_phantom_spacing_and_bench_parts_are_checked(capsys, tmp_path):
     assert rc == 2 and "--spacing must be three voxel sizes" in err[-1]
     rc, err = _cli(["bench", "--parts", "nonsense", "-o", tmp_path / "b"], capsys)
     assert rc == 2 and "unknown benchmark part nonsense" in err[-1]
+    rc, err = _cli(["bench", "--parts", "sizes", "--methods", "isometric,nonsense", "-o", tmp_path / "b"], capsys)
+    assert rc == 2 and "unknown method nonsense; choose from" in err[-1]
     assert not os.path.exists(tmp_path / "p.nrrd") and not os.path.exists(tmp_path / "b")
 
 
