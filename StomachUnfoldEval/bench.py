@@ -1377,16 +1377,24 @@ def replot(out_dir: str = "docs/benchmark") -> list[str]:
     return made
 
 
+def check_methods(methods) -> list[str]:
+    """The method names given (blanks dropped), or InputError naming any that is not a registered method."""
+    from StomachUnfoldLib.methods import method_names
+
+    names = [m.strip() for m in methods if m.strip()]
+    unknown = [m for m in names if m not in method_names()]
+    if unknown or not names:
+        raise InputError(f"unknown method {', '.join(unknown) or '(none given)'}; choose from "
+                         f"{', '.join(method_names())}")
+    return names
+
+
 def _only_methods(cases: list[dict], methods) -> list[dict]:
     """The cases whose method is one of ``methods`` (all of them when None)."""
     if methods is None:
         return cases
-    from StomachUnfoldLib.methods import method_names
-
-    unknown = sorted(set(methods) - set(method_names()))
-    if unknown:
-        raise InputError(f"unknown method {', '.join(unknown)}; choose from {', '.join(method_names())}")
-    return [c for c in cases if c["method"] in set(methods)]
+    wanted = set(check_methods(methods))
+    return [c for c in cases if c["method"] in wanted]
 
 
 def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_size: bool = False,

@@ -542,24 +542,17 @@ def _cmd_bench(args) -> int:
     if unknown or not parts:
         raise InputError(f"unknown benchmark part {', '.join(unknown) or '(none given)'}; choose from "
                          f"{', '.join(BENCH_PARTS)}")
-    methods = None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
-    if methods is not None:
-        from .methods import method_names
+    from StomachUnfoldEval.bench import check_methods, replot, run_benchmark
 
-        wrong = [m for m in methods if m not in method_names()]
-        if wrong or not methods:
-            raise InputError(f"unknown method {', '.join(wrong) or '(none given)'}; choose from "
-                             f"{', '.join(method_names())}")
+    methods = None if args.methods is None else check_methods(args.methods.split(","))
     check_output_folder(args.output_dir)
-    from StomachUnfoldEval.bench import replot, run_benchmark
 
     if args.replot:
         made = replot(args.output_dir)
         print(f"bench: redrew {len(made)} PNGs and {args.output_dir}/results.md from results.json")
         return 0
     rows = run_benchmark(args.output_dir, quick=args.quick, full_size=args.full_size, scheduler=args.scheduler,
-                         data_dir=args.data_dir, parts=tuple(p.strip() for p in args.parts.split(",") if p.strip()),
-                         merge=args.merge, methods=methods)
+                         data_dir=args.data_dir, parts=tuple(parts), merge=args.merge, methods=methods)
     failed = sum(not r.get("ok") for r in rows)
     print(f"bench: {len(rows)} cases, {failed} failed (as data), results in {args.output_dir}/results.md")
     return 0

@@ -1290,11 +1290,11 @@ def bridge_bumps(v: np.ndarray, f: np.ndarray, vn: np.ndarray, ball_mm: float = 
         return v, vn, lift, info
     d_touch, _ = cKDTree(centres[resting]).query(v)
     free = d_touch > ball_mm + touch_mm
+    if not free.any():
+        return v, vn, lift, info
     boundary = np.zeros(nv, bool)
     boundary[_boundary_edges(f).ravel()] = True
     A = _adjacency(f, nv)
-    if not free.any():
-        return v, vn, lift, info
     idx = np.flatnonzero(free)
     n, lab = connected_components(A[idx][:, idx], directed=False)
     A = csr_matrix(A)
