@@ -939,6 +939,9 @@ def _flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):
         sp = np.einsum("nc,ncx->nx", lb, v[fb])
         nb = unit(np.einsum("nc,ncx->nx", lb, vn[fb]))
         depth = np.sum((p - sp) * nb, 1)
+        if RAY_INVERSE:  # where a view's ray passes through the point, that ray's pixel and depth instead
+            on, uv_r, depth_r = _along_rays(p, cand, tree, inc_tris, v, f, vn, uv)
+            uvp[on], depth[on] = uv_r[on], depth_r[on]
         fk = k0 - depth / s
         res = np.stack([uvp[:, 0], uvp[:, 1], fk * s], 1)
         res[dist > max_dist] = np.nan
@@ -973,3 +976,137 @@ def _flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):
         return out
 
     return to_unfolded, to_original
+
+
+#: The map from the CT into the view is the inverse of the view's rays: a point goes to the pixel whose ray (from the
+#: surface along the smoothed normal) passes through it, at that depth; not to its foot on the nearest triangle, which
+#: parts from the ray by the depth times the normals' tilt. Under a small dome (a bead, a polyp as large as the slices
+#: are thick) the rays converge: the dome's whole top passes within RAY_FOCUS_MM (mm) of its centre, and one ray
+#: alone would put the centre anywhere on the dome's image. Where the rays passing that near, at depths within
+#: RAY_FOCUS_MM of the nearest ray's, start more than 2 RAY_FOCUS_MM apart in the view, the point goes to the mean of
+#: their pixels: the middle of the dome's image. A point deeper than RAY_FOCUS_MM is looked for among the triangles of
+#: the vertices within RAY_FOCUS_MM + 1 mm of its nearest vertex's distance (at most RAY_FOCUS_VERTICES, the nearest).
+#: Rule 33 (docs/RULE33_map_along_the_rays.md): on CT 03's hybrids the markers seen 326 -> 362 of 387 and the mean
+#: distance of a marker's place from its drawn bead 0.74 -> 0.31 mm (tuning), but it failed its decision sets: the same
+#: map gave LSCM one more mucosa point on hybrid 01-46058, one point ahead of the isometric view. Off (RAY_INVERSE).
+RAY_INVERSE = False
+RAY_FOCUS_MM = 1.0
+RAY_FOCUS_VERTICES = 400
+
+
+def _phong_solve(p: np.ndarray, cand: np.ndarray, v, f, vn, iters: int = 8):
+    """Where the rays of candidate triangles pass through points: for p (n,3) LPS mm and triangle ids cand (n,m; -1
+    none), barycentrics (n,m,3), depth (n,m; mm along the unit interpolated normal), residual (n,m; mm, inf for none).
+
+    Solves p = sum(l v) + t sum(l vn) for (l1, l2, t) by Newton's method from the point's foot on the triangle's plane,
+    on the candidates that exist, one coordinate array per axis (x, y, z).
+    """
+    n, m = cand.shape
+    lam = np.zeros((n, m, 3))
+    depth = np.zeros((n, m))
+    resid = np.full((n, m), np.inf)
+    cf = f[np.where(cand >= 0, cand, 0)]
+    pi, ci = np.nonzero(cand >= 0)
+    if not len(pi):
+        return lam, depth, resid, cf
+    tri = f[cand[pi, ci]]
+    a, na = v[tri[:, 0]].T, vn[tri[:, 0]].T                  # (3, K): one row per axis
+    e1, e2 = v[tri[:, 1]].T - a, v[tri[:, 2]].T - a
+    d1, d2 = vn[tri[:, 1]].T - na, vn[tri[:, 2]].T - na
+    q = p[pi].T - a
+
+    def dot(x, y):
+        return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+
+    def cross(x, y):
+        return np.stack([x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0]])
+
+    fn = cross(e1, e2)
+    fn = fn / np.maximum(np.sqrt(dot(fn, fn)), 1e-12)
+    t = dot(q, fn)
+    w = q - t * fn
+    d00, d01, d11, d20, d21 = dot(e1, e1), dot(e1, e2), dot(e2, e2), dot(w, e1), dot(w, e2)
+    den = d00 * d11 - d01 ** 2
+    den = np.where(np.abs(den) > 1e-12, den, 1.0)
+    l1, l2 = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    for _ in range(iters):  # Newton: the Jacobian's columns j1, j2, nrm; the step by Cramer's rule
+        nrm = na + l1 * d1 + l2 * d2
+        F = l1 * e1 + l2 * e2 + t * nrm - q
+        j1, j2 = e1 + t * d1, e2 + t * d2
+        c23, c31, c12 = cross(j2, nrm), cross(nrm, j1), cross(j1, j2)
+        det = dot(j1, c23)
+        det = np.where(np.abs(det) > 1e-12, det, np.inf)
+        s1, s2, s3 = (np.clip(-dot(F, c) / det, -2.0, 2.0) for c in (c23, c31, c12))
+        l1, l2, t = l1 + s1, l2 + s2, t + s3
+        if max(np.abs(s1).max(), np.abs(s2).max(), np.abs(s3).max()) < 1e-9:
+            break
+    nrm = na + l1 * d1 + l2 * d2
+    F = l1 * e1 + l2 * e2 + t * nrm - q
+    lam[pi, ci] = np.stack([1.0 - l1 - l2, l1, l2], 1)
+    depth[pi, ci] = t * np.sqrt(dot(nrm, nrm))
+    r = np.sqrt(dot(F, F))
+    resid[pi, ci] = np.where(np.isfinite(r), r, np.inf)
+    return lam, depth, resid, cf
+
+
+def _ray_pick(lam, depth, resid, cf, uv):
+    """The ray through each point nearest the surface among _phong_solve's answers: (whether one passes, its pixel uv
+    mm (n,2), its depth mm (n,), its surface point's barycentrics (n,3) and triangle's vertex ids (n,3))."""
+    hit = (resid < 1e-3) & (lam.min(-1) >= -1e-6)
+    best = np.argmin(np.where(hit, np.abs(depth), np.inf), 1)
+    r = np.arange(len(lam))
+    lb = np.clip(lam[r, best], 0.0, 1.0)
+    lb = lb / np.maximum(lb.sum(-1, keepdims=True), 1e-12)
+    return hit.any(1), np.einsum("nc,ncx->nx", lb, uv[cf[r, best]]), depth[r, best], lb, cf[r, best]
+
+
+def _focus(p, vk, u0, dep, sp, v, vn, uv):
+    """Where the rays of a wide patch of vertices vk (n,m; -1 none) pass within RAY_FOCUS_MM of points p (n,3 LPS mm)
+    at about the depth of the ray through it (dep mm, from surface point sp, at pixel u0 mm): the mean of their pixels,
+    else u0 (n,2); the vertices across the incision from sp (far apart in the view, near in the CT) left out."""
+    ok = vk >= 0
+    w = v[np.maximum(vk, 0)]
+    n = vn[np.maximum(vk, 0)]
+    r = p[:, None, :] - w
+    t = np.sum(r * n, -1)
+    miss = np.linalg.norm(r - t[..., None] * n, axis=-1)
+    u = uv[np.maximum(vk, 0)]
+    apart = np.linalg.norm(u - u0[:, None], axis=-1)
+    near = ok & (miss <= RAY_FOCUS_MM) & (np.abs(t - dep[:, None]) <= RAY_FOCUS_MM)
+    near &= apart <= 1.5 * np.linalg.norm(w - sp[:, None], axis=-1) + 1.0
+    spread = np.where(near, apart, 0.0).max(1) > 2.0 * RAY_FOCUS_MM
+    mean = np.einsum("nm,nmx->nx", near.astype(float), u) / np.maximum(near.sum(1), 1)[:, None]
+    return np.where(spread[:, None], mean, u0)
+
+
+def _along_rays(p: np.ndarray, cand: np.ndarray, tree, inc_tris, v, f, vn, uv):
+    """The view's rays through CT points p (n,3 LPS mm): (whether one passes, pixel uv mm (n,2), depth mm (n,)).
+
+    First among the triangles ``cand`` round each point's nearest vertex; then, for a point deeper than RAY_FOCUS_MM or
+    passed by none, among those of the vertices about as near, with the mean pixel where the rays converge.
+    """
+    on, uvp, dep, _, _ = _ray_pick(*_phong_solve(p, cand, v, f, vn), uv)
+    again = np.flatnonzero(~on | (np.abs(dep) > RAY_FOCUS_MM))
+    for blk in np.array_split(again, max(1, int(np.ceil(len(again) / 128)))):   # bounded memory
+        if not len(blk):
+            continue
+        d0, _ = tree.query(p[blk])
+        balls = tree.query_ball_point(p[blk], d0 + RAY_FOCUS_MM + 1.0)       # vertices about as near as the nearest
+        vk = np.full((len(blk), min(max(len(b) for b in balls), RAY_FOCUS_VERTICES)), -1, np.int64)
+        for i, b in enumerate(balls):
+            b = np.asarray(b, np.int64)
+            if len(b) > vk.shape[1]:
+                b = b[np.argsort(np.linalg.norm(v[b] - p[blk[i]], axis=1))[:vk.shape[1]]]
+            vk[i, :len(b)] = b
+        c2 = np.where(vk[..., None] >= 0, inc_tris[np.maximum(vk, 0)], -1).reshape(len(blk), -1)
+        c2 = -np.sort(-c2, 1)
+        c2[:, 1:][c2[:, 1:] == c2[:, :-1]] = -1                 # each triangle once
+        c2 = -np.sort(-c2, 1)
+        c2 = c2[:, :max(1, int((c2 >= 0).sum(1).max()))]
+        on2, uv2, dep2, lb, fb = _ray_pick(*_phong_solve(p[blk], c2, v, f, vn), uv)
+        if on2.any():
+            sp = np.einsum("nc,ncx->nx", lb, v[fb])
+            uv2[on2] = _focus(p[blk][on2], vk[on2], uv2[on2], dep2[on2], sp[on2], v, vn, uv)
+        sel = blk[on2]
+        on[sel], uvp[sel], dep[sel] = True, uv2[on2], dep2[on2]
+    return on, uvp, dep

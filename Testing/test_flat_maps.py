@@ -1,0 +1,97 @@
+"""The surface methods' map between the CT and the view: with rule 33 (``surface.RAY_INVERSE``, off on main) a point
+goes to the pixel whose ray passes through it; without it, to its foot on the nearest triangle."""
+import numpy as np
+import pytest
+
+from StomachUnfoldLib import surface
+from StomachUnfoldLib.surface import _flat_maps, unit, view_raster
+
+
+def _maps(v, f, vn, uv, s=0.5, k0=8.0, w=4.0):
+    """The surface methods' two maps over a mesh (v LPS mm, normals vn toward the tissue) laid flat at uv (mm)."""
+    uv = uv - uv.min(0) + s
+    ni, nj = int(np.ceil(uv[:, 0].max() / s)) + 2, int(np.ceil(uv[:, 1].max() / s)) + 2
+    tri, bary, _ = view_raster(uv, f, (nj, ni), s, None, open_mouths=True)
+    fwd, inv = _flat_maps(v, f, vn, uv, tri, bary, s, k0, w)
+    return fwd, inv, uv
+
+
+def _grid_faces(nu, nv):
+    """Two triangles per cell of an nu x nv vertex grid (row-major)."""
+    f = []
+    for a in range(nu - 1):
+        for b in range(nv - 1):
+            i = a * nv + b
+            f += [[i, i + nv, i + 1], [i + 1, i + nv, i + nv + 1]]
+    return np.array(f)
+
+
+def _bent_sheet():
+    """A sheet bent round a cylinder of 20 mm (the tissue outside), normals tilted along the axis as smoothing
+    leaves them: (v, f, vn, uv)."""
+    th, z = np.meshgrid(np.linspace(0.0, 2.0, 25), np.linspace(0.0, 30.0, 31), indexing="ij")
+    th, z = th.ravel(), z.ravel()
+    v = np.stack([20.0 * np.cos(th), 20.0 * np.sin(th), z], 1)
+    radial = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], 1)
+    vn = unit(radial + 0.4 * np.sin(z / 5.0)[:, None] * np.array([0.0, 0.0, 1.0]))
+    return v, _grid_faces(25, 31), vn, np.stack([20.0 * th, z], 1)
+
+
+@pytest.mark.parametrize("ray_inverse", [True, False])
+def test_a_point_in_the_wall_goes_to_the_ray_through_it(monkeypatch, ray_inverse):
+    monkeypatch.setattr(surface, "RAY_INVERSE", ray_inverse)
+    v, f, vn, uv = _bent_sheet()
+    fwd, inv, uv = _maps(v, f, vn, uv)
+    rng = np.random.default_rng(3)
+    t = rng.choice(np.flatnonzero(uv[f].min((1, 2)) > 4.0), 400)        # away from the rim
+    lam = rng.dirichlet(np.ones(3), len(t))
+    depth = rng.uniform(-1.5, 4.0, len(t))                               # from the lumen side into the wall (mm)
+    sp = np.einsum("nc,ncx->nx", lam, v[f[t]])
+    p = sp + depth[:, None] * unit(np.einsum("nc,ncx->nx", lam, vn[f[t]]))
+    there = fwd(p)
+    assert np.all(np.isfinite(there))
+    err_uv = np.linalg.norm(there[:, :2] - np.einsum("nc,ncx->nx", lam, uv[f[t]]), axis=1)
+    back = np.linalg.norm(inv(there) - p, axis=1)
+    if ray_inverse:                       # the view's own ray: exact both ways
+        assert err_uv.max() < 1e-6 and np.abs((8.0 - there[:, 2] / 0.5) * 0.5 - depth).max() < 1e-6
+        assert np.nanmax(back) < 0.26     # to_original reads the pixel's triangle: within half a pixel's offset
+    else:                                 # the foot on the nearest triangle: off by the depth times the tilt
+        assert err_uv.max() > 0.5
+
+
+def _domed_plane(r_dome=4.0, n_theta=24, rho_max=16.0, n_rho=20):
+    """A plane (tissue below, z < 0) with a hemisphere of r_dome mm standing on it into the lumen (a bead), in geodesic
+    polar coordinates round its top, vertices about 1 mm apart as on a CT's wall; normals toward the tissue: -z on the plane, toward the sphere's centre on the
+    dome. Returns (v, f, vn, uv), uv the geodesic polar map (the dome unrolled round its top at uv (0, 0))."""
+    rho = np.linspace(0.0, rho_max, n_rho)[1:]
+    th = np.linspace(0.0, 2 * np.pi, n_theta, endpoint=False)
+    R, T = np.meshgrid(rho, th, indexing="ij")
+    R, T = R.ravel(), T.ravel()
+    q = r_dome * np.pi / 2
+    phi = np.minimum(R, q) / r_dome
+    rad = np.where(R <= q, r_dome * np.sin(phi), r_dome + (R - q))
+    v = np.stack([rad * np.cos(T), rad * np.sin(T), np.where(R <= q, r_dome * np.cos(phi), 0.0)], 1)
+    v = np.vstack([[0.0, 0.0, r_dome], v])
+    vn = np.where((np.r_[0.0, R] <= q)[:, None], -v / r_dome, [0.0, 0.0, -1.0])
+    uv = np.vstack([[0.0, 0.0], np.stack([R * np.cos(T), R * np.sin(T)], 1)])
+    f = [[0, 1 + (b + 1) % n_theta, 1 + b] for b in range(n_theta)]
+    for a in range(len(rho) - 1):
+        for b in range(n_theta):
+            i, j = 1 + a * n_theta + b, 1 + a * n_theta + (b + 1) % n_theta
+            f += [[i, j, i + n_theta], [j, j + n_theta, i + n_theta]]
+    return v, np.array(f), unit(vn), uv
+
+
+def test_the_centre_under_a_dome_goes_to_the_middle_of_its_image(monkeypatch):
+    monkeypatch.setattr(surface, "RAY_INVERSE", True)
+    v, f, vn, uv0 = _domed_plane()
+    fwd, inv, uv = _maps(v, f, vn, uv0)
+    apex = uv[0]
+    for centre in ([0.0, 0.0, 0.0], [0.3, -0.2, 0.2]):   # the bead's centre, and a little off it
+        there = fwd(np.array([centre]))[0]
+        assert np.all(np.isfinite(there))
+        assert np.linalg.norm(there[:2] - apex) < 1.0, there[:2] - apex
+    # a point under the plane, away from the dome, keeps its own ray
+    p = np.array([[10.0, 3.0, -2.0]])
+    there = fwd(p)[0]
+    assert np.allclose(inv(there[None])[0], p[0], atol=0.3)
