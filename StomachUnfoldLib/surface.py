@@ -635,7 +635,7 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
     arr = to_int16(arr)
     pinholes = fill_pinholes(arr, tri=tri)                # on the stored HU: the view's reader sees the same
     vol = Volume(arr, np.full(3, s), np.zeros(3), np.eye(3))
-    to_unfolded, to_original = _flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps)
+    to_unfolded, to_original = flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps)
     mesh = Mesh(v, np.concatenate([uv, np.full((len(uv), 1), k0 * s)], 1), f, "triangle", f)
     info = {"size_ij": [ni, nj], "depth_samples_k": nk, "spacing_mm": s,
             "param_overlap_pixel_fraction": float((hits > 1).sum() / max(int(covered.sum()), 1)),
@@ -891,8 +891,10 @@ def _outline_squares(uv, f, tri, bary, s, step_px: float = 0.5):
     bary.reshape(-1, 3)[lin] = q
 
 
-def _flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):
-    """CT LPS mm -> unfolded LPS mm through the surface's nearest triangles, and back through the raster."""
+def flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):
+    """The two maps of a flattened surface: CT LPS mm -> unfolded LPS mm (by the foot on a triangle round the nearest
+    vertex, or along the view's rays with RAY_INVERSE), and back through the raster (tri, bary; pixel ``s`` mm, the
+    surface at slice ``k0``, wall ``w`` mm)."""
     nj, ni = tri.shape
     # --- map from the CT ------------------------------------------------------------------------------------
     tree = cKDTree(v)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from StomachUnfoldLib import surface
-from StomachUnfoldLib.surface import _flat_maps, unit, view_raster
+from StomachUnfoldLib.surface import flat_maps, unit, view_raster
 
 
 def _maps(v, f, vn, uv, s=0.5, k0=8.0, w=4.0):
@@ -12,7 +12,7 @@ def _maps(v, f, vn, uv, s=0.5, k0=8.0, w=4.0):
     uv = uv - uv.min(0) + s
     ni, nj = int(np.ceil(uv[:, 0].max() / s)) + 2, int(np.ceil(uv[:, 1].max() / s)) + 2
     tri, bary, _ = view_raster(uv, f, (nj, ni), s, None, open_mouths=True)
-    fwd, inv = _flat_maps(v, f, vn, uv, tri, bary, s, k0, w)
+    fwd, inv = flat_maps(v, f, vn, uv, tri, bary, s, k0, w)
     return fwd, inv, uv
 
 
