@@ -116,10 +116,11 @@ def _cached(source: dict, cache_dir: str | None):
     """(CT, truth) of a random stomach or hybrid, from the cache folder when it is there, else drawn and cached."""
     from StomachUnfoldLib.io import atomic_write_text, read_volume, write_volume
 
-    from .random_stomach import insert_into_ct, random_stomach
+    from .random_stomach import HYBRID_DRAWING, insert_into_ct, random_stomach
 
     key = (f"random-{source['random']}-{source.get('size', 'small')}" if "random" in source
-           else f"hybrid-{source['hybrid']}-{os.path.basename(source['ct']).split('.')[0]}")
+           else f"hybrid-{source['hybrid']}-{os.path.basename(source['ct']).split('.')[0]}"
+           + (f"-d{HYBRID_DRAWING}" if HYBRID_DRAWING != 1 else ""))
     if cache_dir:
         vol_path, json_path = os.path.join(cache_dir, key + ".nrrd"), os.path.join(cache_dir, key + ".json")
         if os.path.exists(vol_path) and os.path.exists(json_path):

@@ -341,3 +341,42 @@ def test_hybrid_insert_keeps_input_and_has_stomach():
     assert np.median(_bead_peaks(vol, inside)) > 100
     changed = vol.array != before
     assert changed.sum() * np.prod(vol.spacing) / 1000.0 > 100                 # at least 100 mL pasted
+
+
+def test_a_voxel_is_as_long_along_a_direction_as_its_box_is():
+    from StomachUnfoldLib.geometry import Volume
+    from StomachUnfoldEval.random_stomach import voxel_extent_mm
+
+    vol = Volume(np.zeros((4, 4, 4), np.int16), (0.8, 1.0, 4.0), (0.0, 0.0, 0.0), np.eye(3))
+    n = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, -1.0, 0], [np.sqrt(0.5), 0, np.sqrt(0.5)]])
+    assert np.allclose(voxel_extent_mm(n, vol), [4.0, 0.8, 1.0, np.sqrt(0.5) * 4.8])
+
+
+def test_a_flat_top_on_thick_slices_is_shared_between_slices_as_a_scanner_averages():
+    from StomachUnfoldLib.geometry import Volume
+    from StomachUnfoldEval.random_stomach import paint_beads
+
+    vol = Volume(np.zeros((10, 5, 5), np.int16), (1.0, 1.0, 4.0), (0.0, 0.0, 0.0), np.eye(3))
+    arr = np.zeros((10, 5, 5), np.float32)
+    top = 21.0                                   # in slice 5 (17.5 .. 21.5 mm... centres every 4 mm from 0)
+    r = 1000.0                                   # a bead so large that its top is flat here
+    paint_beads(arr, vol, np.array([[2.0, 2.0, top - r]]), r, value=1000.0)
+    col = arr[:, 2, 2]
+    # slice k spans z = 4k - 2 .. 4k + 2: slice 5 (18 .. 22) is three quarters under the top, slice 6 empty
+    assert np.isclose(col[5], 750.0, atol=1.0) and np.isclose(col[4], 1000.0) and col[6] == 0.0
+
+
+@pytest.mark.skipif(not os.path.exists(os.path.join(DATA, "03_tcia_acrin_flt_breast_001_ct_chest_abd_pelvis_4p25mm.nii.gz")),
+                    reason="shared real CTs not present")
+def test_drawing_2_shares_a_flat_wall_between_thick_slices():
+    from StomachUnfoldLib.io import read_volume
+
+    ct = read_volume(os.path.join(DATA, "03_tcia_acrin_flt_breast_001_ct_chest_abd_pelvis_4p25mm.nii.gz"))  # 4.25 mm
+    mids = []
+    for drawing in (1, 2):
+        vol, truth = insert_into_ct(ct, 40003, drawing=drawing)
+        i, j, k = np.rint(ct.lps_to_index(np.array([truth["dome_centre_lps"]]))[0]).astype(int)
+        cols = vol.array[k:k + 15, j - 6:j + 7, i - 6:i + 7].astype(int)      # up from the dome's centre to its top
+        mids.append(float(np.mean(np.sum((cols > -850) & (cols < -150), axis=0))))
+    # between air and wall: drawing 1 steps from slice to slice, drawing 2 has the partial slices a scanner gives
+    assert mids[1] > 1.2 * mids[0], mids
