@@ -18,7 +18,11 @@ from .progress import Progress
 INSIDE_MM = 2.0         # how far into the lumen (mm) each depth profile starts
 CLEARANCE_MM = 2.0      # profile length beyond the wall thickness (mm)
 CRACK_PX = 1.0          # pinholes and cracks inside the flat map's outline up to two pixels wide are closed (pixels)
-SURFACE_SIGMA_VOX = 1.0  # blur of the inner-wall field (voxels)
+SURFACE_SIGMA_VOX = 1.0  # blur of the inner-wall field (voxels; in-plane voxels along every axis, SURFACE_BLUR_IN_MM)
+#: Rule 34 (docs/RULE34_surface_blur_in_mm.md): the inner wall's blur is SURFACE_SIGMA_VOX of the finest spacing, in mm,
+#: along every axis, not SURFACE_SIGMA_VOX voxels of each axis: on 4.25 mm slices one voxel is 4.25 mm along the slices
+#: and closes a pyloric canal a few mm wide that the lumen keeps. Isotropic voxels are unchanged to the bit.
+SURFACE_BLUR_IN_MM = False
 CLEAR_RAMP = 0.3        # a lumen mask clears the profiles from 0.5 to 0.8 of its blurred field, in proportion
 TISSUE_HU = -400.0      # a view's sample above this is tissue: where the view is seen (view.first_hit's default)
 
@@ -31,6 +35,14 @@ def unit(v, eps=1e-12):
 def perpendicular(v, t):
     """The part of vectors v perpendicular to unit vectors t (row-wise)."""
     return v - np.sum(v * t, axis=-1, keepdims=True) * t
+
+
+def surface_sigma_vox(spacing) -> float | tuple:
+    """The inner wall's blur (voxels; per array axis k, j, i when SURFACE_BLUR_IN_MM) on a grid of ``spacing`` (mm, i j k)."""
+    if not SURFACE_BLUR_IN_MM:
+        return SURFACE_SIGMA_VOX
+    sp = np.asarray(spacing, float)
+    return tuple(float(SURFACE_SIGMA_VOX * sp.min() / x) for x in sp[::-1])
 
 
 def sample_profiles(crop: Volume, surf: np.ndarray, normal: np.ndarray, depths: np.ndarray,
@@ -51,7 +63,7 @@ def sample_profiles(crop: Volume, surf: np.ndarray, normal: np.ndarray, depths: 
     rows = max(1, batch // max(d, 1))
     soft = None
     if lumen is not None:
-        soft = ndimage.gaussian_filter(np.asarray(lumen, np.float32), SURFACE_SIGMA_VOX, output=np.float32)
+        soft = ndimage.gaussian_filter(np.asarray(lumen, np.float32), surface_sigma_vox(crop.spacing), output=np.float32)
     for a in range(0, n, rows):
         b = min(n, a + rows)
         p = surf[a:b, None, :] + depths[None, :, None] * normal[a:b, None, :]
@@ -133,13 +145,13 @@ def surface_field(crop: Volume, lumen: np.ndarray, mask_given: bool, step: int =
     field's there.
     """
     if mask_given:
-        g = _blur(lumen.astype(np.float32), SURFACE_SIGMA_VOX, step, start)
+        g = _blur(lumen.astype(np.float32), surface_sigma_vox(crop.spacing), step, start)
         return (-1000.0 * g).astype(np.float32), -500.0
     band = _box_dilate(lumen)
     field = np.full(band.shape, 200.0, np.float32)
     np.copyto(field, crop.array, casting="unsafe", where=band)     # HU (exact in float32) in the band
     # a little blur (1 voxel) as a CT's partial volume gives: voxel staircases would tilt the sampled surface
-    return _blur(field, SURFACE_SIGMA_VOX, step, start), -500.0
+    return _blur(field, surface_sigma_vox(crop.spacing), step, start), -500.0
 
 
 def _box_dilate(mask: np.ndarray) -> np.ndarray:
@@ -156,13 +168,15 @@ def _box_dilate(mask: np.ndarray) -> np.ndarray:
     return b
 
 
-def _blur(a: np.ndarray, sigma_vox: float, step: int, start: int) -> np.ndarray:
-    """``ndimage.gaussian_filter(a, sigma_vox)`` (float32) at the voxels ``start::step`` of each axis: the axes are
-    filtered in its order, each on the lines the later axes still need, so the values are the same to the bit."""
+def _blur(a: np.ndarray, sigma_vox, step: int, start: int) -> np.ndarray:
+    """``ndimage.gaussian_filter(a, sigma_vox)`` (float32; sigma one number or one per axis) at the voxels
+    ``start::step`` of each axis: the axes are filtered in its order, each on the lines the later axes still need, so
+    the values are the same to the bit."""
     if step == 1 and start == 0:
         return ndimage.gaussian_filter(a, sigma_vox)
+    sig = np.broadcast_to(np.asarray(sigma_vox, float), (a.ndim,))
     for axis in range(a.ndim):
-        a = ndimage.gaussian_filter1d(a, sigma_vox, axis=axis, output=np.float32)
+        a = ndimage.gaussian_filter1d(a, float(sig[axis]), axis=axis, output=np.float32)
         a = a[(slice(None),) * axis + (slice(start, None, step),)]
     return a
 

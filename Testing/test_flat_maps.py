@@ -95,3 +95,39 @@ def test_the_centre_under_a_dome_goes_to_the_middle_of_its_image(monkeypatch):
     p = np.array([[10.0, 3.0, -2.0]])
     there = fwd(p)[0]
     assert np.allclose(inv(there[None])[0], p[0], atol=0.3)
+
+
+def _canal_crop(spacing):
+    """A crop (HU) of soft tissue with an air canal 5 mm wide along i, centred on a slice, partial voxels over their
+    extent across it (as a scanner averages over a slice), and its lumen mask (under -500 HU); voxels of ``spacing``."""
+    from StomachUnfoldLib.geometry import Volume
+
+    sp = np.asarray(spacing, float)
+    n = (np.ceil(np.array([30.0, 30.0, 40.0]) / sp[::-1])).astype(int)           # k, j, i
+    k, j, i = np.meshgrid(*(np.arange(m) for m in n), indexing="ij")
+    zc = (n[0] // 2 + 0.5) * sp[2]
+    z, y = (k + 0.5) * sp[2] - zc, (j + 0.5) * sp[1] - 15.0
+    r = np.maximum(np.hypot(z, y), 1e-9)
+    ext = np.abs(y) / r * sp[1] + np.abs(z) / r * sp[2]
+    air = np.clip(0.5 + (2.5 - r) / ext, 0.0, 1.0)
+    hu = (40.0 - 1040.0 * air).astype(np.float32)
+    return Volume(hu, sp, np.zeros(3), np.eye(3)), hu < -500.0
+
+
+@pytest.mark.parametrize("in_mm", [False, True])
+def test_the_inner_walls_blur_in_mm_keeps_a_narrow_canal_on_thick_slices(monkeypatch, in_mm):
+    monkeypatch.setattr(surface, "SURFACE_BLUR_IN_MM", in_mm)
+    crop, lumen = _canal_crop((1.0, 1.0, 4.0))
+    assert lumen.any()
+    field, level = surface.surface_field(crop, lumen, False)
+    kept = bool(np.any(field[lumen] < level))
+    assert kept == in_mm                       # one voxel's blur along 4 mm slices closes the canal; 1 mm does not
+
+
+def test_the_inner_walls_blur_in_mm_is_the_same_on_isotropic_voxels(monkeypatch):
+    crop, lumen = _canal_crop((1.5, 1.5, 1.5))
+    got = []
+    for in_mm in (False, True):
+        monkeypatch.setattr(surface, "SURFACE_BLUR_IN_MM", in_mm)
+        got.append([surface.surface_field(crop, lumen, False, step, start)[0] for step, start in ((1, 0), (2, 1))])
+    assert all(np.array_equal(a, b) for a, b in zip(*got))
