@@ -1348,11 +1348,11 @@ def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, draw
     """Paste a drawn stomach (lumen air/fluid, wall, markers; LPS mm, HU) into a real CT; returns (Volume, truth).
 
     The dome centre goes to ``centre_lps`` (default: under the left lung base, else the left upper abdomen); the
-    model is sampled on the CT's own grid (any direction), with partial-volume edges (each voxel in proportion to
-    its depth past a surface over its own extent along the surface's normal: on thick slices a flat wall is
-    shared between slices, as a scanner averages over a slice, not stepped; ``drawing`` 2, see HYBRID_DRAWING) and
-    noise; gas of the CT
-    within ``halo_mm`` of the outer wall becomes soft tissue, so the lumen stays sealed. The input is not modified.
+    model is sampled on the CT's own grid (any direction), with partial-volume edges and noise. ``drawing`` (default
+    HYBRID_DRAWING): 1, a voxel is partly each side over the mean spacing of depth past a surface; 2, over its own
+    extent along the surface's normal, so that on thick slices a flat wall is shared between slices as a scanner
+    averages over a slice. Gas of the CT within ``halo_mm`` of the outer wall becomes soft tissue, so the lumen stays
+    sealed. The input is not modified.
     """
     t0 = time.perf_counter()
     d0 = draw_parameters(seed, "small", **overrides)
