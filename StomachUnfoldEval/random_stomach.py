@@ -1299,11 +1299,13 @@ def voxel_extent_mm(normals: np.ndarray, vol: Volume) -> np.ndarray:
     return np.abs(np.asarray(normals, float) @ vol.direction) @ np.asarray(vol.spacing, float)
 
 
-def paint_beads(arr, vol: Volume, centres, bead, value=HU["marker"], drawing: int = 2):
-    """Partial-volume beads (LPS centres, radius mm) painted into arr (float, the layout of ``vol``): each voxel covered
-    in proportion to its depth in the bead over its own extent along the bead's radius (a slice's thickness through a
-    bead's top and bottom, a pixel's width round its side); with ``drawing`` 1 over the mean spacing instead."""
-    reach = float(np.sum(vol.spacing))
+def paint_beads(arr, vol: Volume, centres, bead, value=HU["marker"], drawing: int | None = None):
+    """Partial-volume beads (LPS centres, radius mm) painted into arr (float, the layout of ``vol``). ``drawing``
+    (default HYBRID_DRAWING): 2, each voxel covered in proportion to its depth in the bead over its own extent along
+    the bead's radius (a slice's thickness through a bead's top and bottom, a pixel's width round its side); 1, over
+    the mean spacing."""
+    drawing = HYBRID_DRAWING if drawing is None else int(drawing)
+    reach = float(np.sum(vol.spacing)) if drawing >= 2 else 2.0 * float(np.mean(vol.spacing))   # the partial shell
     for c in np.asarray(centres, float).reshape(-1, 3):
         ijk = vol.lps_to_index(c[None])[0]
         r_vox = np.ceil((bead + reach) / vol.spacing).astype(int) + 1

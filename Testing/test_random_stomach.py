@@ -360,7 +360,7 @@ def test_a_flat_top_on_thick_slices_is_shared_between_slices_as_a_scanner_averag
     arr = np.zeros((10, 5, 5), np.float32)
     top = 21.0                                   # in slice 5 (17.5 .. 21.5 mm... centres every 4 mm from 0)
     r = 1000.0                                   # a bead so large that its top is flat here
-    paint_beads(arr, vol, np.array([[2.0, 2.0, top - r]]), r, value=1000.0)
+    paint_beads(arr, vol, np.array([[2.0, 2.0, top - r]]), r, value=1000.0, drawing=2)
     col = arr[:, 2, 2]
     # slice k spans z = 4k - 2 .. 4k + 2: slice 5 (18 .. 22) is three quarters under the top, slice 6 empty
     assert np.isclose(col[5], 750.0, atol=1.0) and np.isclose(col[4], 1000.0) and col[6] == 0.0
