@@ -1063,3 +1063,48 @@ def test_a_crossing_of_the_global_strain_step_is_solved_again_with_its_vertices_
     assert s1[~near].max() <= 1.5 and s1.max() < iso._singular_values(iso._jacobians(uv0, f, Ainv))[0].max()
     held = np.linalg.norm(uv0 - uv0[pushed], axis=1) < 1.0
     assert np.linalg.norm(out[held] - uv0[held], axis=1).max() < np.linalg.norm(free[held] - uv0[held], axis=1).max()
+
+
+def test_no_triangle_is_left_over_the_limit_even_where_the_strain_limit_gives_up():
+    # limit_stretch cut short (no global step, no sweep) leaves the pulled sheet's triangles over 1.5x; the guard
+    # scales the whole map so that none is over, and no spring either, turns nothing over, and keeps the shape (a
+    # similarity: every distance scaled alike); a map within the limit comes back the same object, scale 1
+    from StomachUnfoldLib.methods.isometric import STRETCH_LIMIT, hold_within_limit
+
+    nu = nv = 10
+    g = np.stack(np.meshgrid(np.arange(nu) * 2.0, np.arange(nv) * 2.0, indexing="ij"), -1).reshape(-1, 2)
+    v, f = np.c_[g, np.zeros(len(g))], _grid(nu, nv)
+    uv = g * [1.8, 1.0]
+    uv[5 * nv + 5] += [1.5, 0.7]
+    stuck, info = limit_stretch(v, f, uv, sweeps=0, solves=0)
+    assert info["stretched_triangles"] > 0 and stretch_stats(v, f, stuck)["stretch_max"] > 1.9
+    out, scale = hold_within_limit(v, f, stuck)
+    st = stretch_stats(v, f, out)
+    assert st["stretch_max"] <= STRETCH_LIMIT and st["edges_over_1p5"] == 0.0
+    assert 0.5 < scale < 1.0 and st["stretch_max"] > 0.97 * STRETCH_LIMIT      # no more shrunk than it needs
+    assert np.all(np.sign(signed_area_2d(out, f)) == np.sign(signed_area_2d(stuck, f)))
+    d0 = np.linalg.norm(stuck[f[:, 0]] - stuck[f[:, 1]], axis=1)
+    d1 = np.linalg.norm(out[f[:, 0]] - out[f[:, 1]], axis=1)
+    assert np.allclose(d1, scale * d0)
+    same, one = hold_within_limit(v, f, g)
+    assert one == 1.0 and np.array_equal(same, g)
+
+
+def test_the_view_keeps_no_triangle_over_the_limit_when_the_strain_limit_is_cut_short(tiny_run, monkeypatch):
+    # the tiny J's map comes out of ARAP with triangles over 1.5x; with the strain limit switched off the guard
+    # scales the map, the grade's own mesh has none over, and the report says why lengths read short; with the
+    # strain limit on (the default), the guard has nothing to do
+    import StomachUnfoldLib.methods.isometric as iso
+
+    ct, truth, res = tiny_run
+    m = res.report["method"]
+    assert m["stretched_triangles_before"] > 0 and m["stretch_guard_scale"] == 1.0
+    assert not any("strain limit left" in w for w in res.report.warnings)
+    monkeypatch.setattr(iso, "STRETCH_SOLVES", 0)
+    monkeypatch.setattr(iso, "STRETCH_SWEEPS", 0)
+    cut = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                 UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
+    mc = cut.report["method"]
+    assert mc["stretched_triangles"] > 0 and 0.5 < mc["stretch_guard_scale"] < 1.0
+    assert mc["stretch_max"] <= iso.STRETCH_LIMIT and cut.report["quality"]["max_stretch"] <= iso.STRETCH_LIMIT
+    assert any("strain limit left a triangle over 1.5x" in w for w in cut.report.warnings)

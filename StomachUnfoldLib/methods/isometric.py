@@ -13,7 +13,8 @@ encloses a slot is solved again with the whole boundary straight, one that still
 end's boundary held straighter, and one that still peels a fold the judge would count with the wall round it made
 as-similar-as-possible; a map that still hides such a fold is made again with light distance terms, and the one
 that misses less mucosa is kept); the few boundary triangles
-left stretched over 1.5x are relieved by a strain limit (``limit_stretch``); the flat map is turned so that the
+left stretched over 1.5x are relieved by a strain limit (``limit_stretch``), and should one be left over, the whole
+map is scaled down until none is (``hold_within_limit``, with a warning); the flat map is turned so that the
 mucosa faces +k and the cardia->pylorus axis runs along +i, not rescaled; the unfolded volume is sampled along
 the vertex normals averaged over NORMAL_SMOOTH_MM (``surface.sample_flat_map``). Expected behaviour: lengths and
 areas kept where the surface is developable (a tube, a bent tube), curvature of the dome and the bends spread evenly
@@ -38,8 +39,8 @@ from ..surface import (compact, cut_surface, inner_surface, largest_component, o
 from . import Method, Unfolding, register
 
 __all__ = ["IsometricFlattening", "arap", "geodesic_pairs", "distance_terms", "largest_defect_mm2",
-           "triangle_frames", "cot_laplacian", "stretch_stats", "limit_stretch", "cut_along_path", "open_surface",
-           "taubin_smooth", "smooth_normals", "IsoSurface", "MAX_MESH_VERTICES", "outside_scan"]
+           "triangle_frames", "cot_laplacian", "stretch_stats", "limit_stretch", "hold_within_limit", "cut_along_path",
+           "open_surface", "taubin_smooth", "smooth_normals", "IsoSurface", "MAX_MESH_VERTICES", "outside_scan"]
 
 #: the default of the ``isometric_vertices`` parameter (the mesh's size is a run's parameter; this is its default)
 MAX_MESH_VERTICES = SurfaceParameters().isometric_vertices
@@ -973,6 +974,26 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
                  "stretch_solves": solves, "stretch_move_mm": moved}
 
 
+def hold_within_limit(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | None = None
+                      ) -> tuple[np.ndarray, float]:
+    """Guarantee no triangle of a flat map (V,2 mm) of a mesh (v LPS mm, f) is stretched over ``limit`` (s1).
+
+    The last resort after :func:`limit_stretch`: if a triangle is still over the limit, the whole map is scaled about
+    its centroid so that the most stretched one comes to STRETCH_MARGIN x the limit. A uniform scale turns and folds
+    nothing and scales every triangle's singular values and every spring's length alike, so afterwards none is over;
+    the price is that every length on the view reads that much short. Returns (uv mm; the scale, 1.0 when the map
+    was already within the limit and comes back unchanged).
+    """
+    limit = STRETCH_LIMIT if limit is None else float(limit)
+    uv = np.asarray(uv, float)
+    top = stretch_stats(v, f, uv)["stretch_max"] if len(f) else 0.0
+    if not top > limit:
+        return uv, 1.0
+    scale = limit * STRETCH_MARGIN / top
+    centre = uv.mean(0)
+    return centre + scale * (uv - centre), float(scale)
+
+
 def _pinned_resolve(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv0: np.ndarray, uv: np.ndarray,
                     bedges: np.ndarray, goal: float, aim: float, orientation: float) -> tuple[np.ndarray, int]:
     """Where the global strain step made the map's outline cross itself, solve it again from the input map ``uv0``
@@ -1713,6 +1734,11 @@ class IsometricFlattening(Method):
                 cut, uv = _with_faces(cut, f_keep, uv)
             uv, info_st = limit_stretch(cut.v, cut.f, uv)
             info.update(info_st)
+            uv, info["stretch_guard_scale"] = hold_within_limit(cut.v, cut.f, uv)
+            if info["stretch_guard_scale"] < 1.0:
+                warnings.append(f"the strain limit left a triangle over {STRETCH_LIMIT:g}x: the whole flat map was "
+                                f"scaled by {info['stretch_guard_scale']:.3f}, so lengths on the view read "
+                                f"{100 * (1 - info['stretch_guard_scale']):.1f} % short (see the distortion map)")
             uv, flipped_frac = orient_rigid(uv, cut, prep.pixel_mm)
             st = stretch_stats(cut.v, cut.f, uv)
         sa = signed_area_2d(uv, cut.f)
