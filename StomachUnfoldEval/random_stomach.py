@@ -1354,7 +1354,8 @@ def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, draw
     HYBRID_DRAWING): 1, a voxel is partly each side over the mean spacing of depth past a surface; 2, over its own
     extent along the surface's normal, so that on thick slices a flat wall is shared between slices as a scanner
     averages over a slice. Gas of the CT within ``halo_mm`` of the outer wall becomes soft tissue, so the lumen stays
-    sealed. The input is not modified.
+    sealed. The input is not modified. Raises InputError when the cardia or pylorus falls outside the CT (a slab
+    too thin to hold a stomach).
     """
     t0 = time.perf_counter()
     d0 = draw_parameters(seed, "small", **overrides)
@@ -1418,4 +1419,12 @@ def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, draw
         m["in_volume"] = bool(ok)
     truth["dome_centre_lps"] = c.tolist()
     truth["seconds"] = {"total": time.perf_counter() - t0}
+    ends = {n: np.asarray(truth[f"{n}_lps"], float) for n in ("cardia", "pylorus")}
+    out = [n for n, p in ends.items() if not vol.contains_lps(p[None])[0]]
+    if out:
+        lo, hi = ct.bounds_lps()
+        raise InputError(f"the drawn stomach does not fit in this CT: its {' and '.join(out)} "
+                         f"(RAS {', '.join(f'{x:.1f}' for x in lps_to_ras(ends[out[0]]))} mm) lies outside the scan, "
+                         f"which covers {hi[2] - lo[2]:.0f} mm head to foot; insert it into a CT of the whole upper "
+                         f"abdomen")
     return vol, truth
