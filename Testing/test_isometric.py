@@ -1108,3 +1108,38 @@ def test_the_view_keeps_no_triangle_over_the_limit_when_the_strain_limit_is_cut_
     assert mc["stretched_triangles"] > 0 and 0.5 < mc["stretch_guard_scale"] < 1.0
     assert mc["stretch_max"] <= iso.STRETCH_LIMIT and cut.report["quality"]["max_stretch"] <= iso.STRETCH_LIMIT
     assert any("strain limit left a triangle over 1.5x" in w for w in cut.report.warnings)
+
+
+def test_a_flap_is_turned_about_its_hinge_and_nothing_else_moves():
+    # a strip of four triangles folded back over a sheet: the fold's vertices that no kept triangle has are turned
+    # about the centroid of those it shares with the kept ones; every other vertex stays; a fold with no hinge (or
+    # no flap) gives back the map as it was, as a copy
+    from StomachUnfoldLib.methods.isometric import turn_flap
+
+    uv = np.array([[0, 0], [2, 0], [0, 2], [2, 2],          # the sheet's edge: hinge at vertices 2 and 3
+                   [0, 1], [2, 1], [0, 0.5], [2, 0.5]], float)  # the flap lies back over the sheet
+    f_keep = np.array([[0, 1, 3], [0, 3, 2]])
+    f_fold = np.array([[2, 3, 5], [2, 5, 4], [4, 5, 7], [4, 7, 6]])
+    out = turn_flap(uv, f_keep, f_fold, 180.0)
+    assert np.allclose(out[:4], uv[:4])                          # the sheet and the hinge stay
+    assert np.allclose(out[4:], [[2, 3], [0, 3], [2, 3.5], [0, 3.5]])   # about (1, 2): now beyond the hinge
+    q = turn_flap(uv, f_keep, f_fold, 90.0)
+    assert np.allclose(q[4], [2.0, 1.0]) and np.allclose(q[6], [2.5, 1.0])
+    same = turn_flap(uv, f_keep, np.array([[0, 1, 3]]), 180.0)
+    assert np.array_equal(same, uv) and same is not uv            # a "fold" made of kept vertices only: no flap
+
+
+def test_a_flap_left_after_the_push_is_turned_about_its_hinge_and_kept_when_it_hides_less(monkeypatch):
+    # the tiny J's push leaves a fold over twice a failure part (about 100 mm^2): turned by 120 degrees and solved
+    # again, the map hides less and is kept; the trace holds what each angle hid, and the report says which was kept
+    import StomachUnfoldLib.methods.isometric as iso
+
+    monkeypatch.setattr(iso, "FLIP_DEGREES", (120.0,))
+    ct, truth = make_phantom("j", "tiny")
+    m = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+               UnfoldParameters(method="isometric", wall_thickness_mm=4.0, quality=False)).report["method"]
+    assert m["flip_from_mm2"] > iso.FLIP_FROM_MM2 and [a for a, _ in m["flip_retry_mm2"]] == [120.0]
+    hid = m["flip_retry_mm2"][0][1]
+    assert m["flip_kept"] == (120.0 if hid < m["flip_from_mm2"] else None)
+    assert m["hidden_fold_mm2"] + m["flat_defect_mm2"] == pytest.approx(min(hid, m["flip_from_mm2"]))
+    assert m["flip_kept"] == 120.0                      # the tiny J: 103 -> 56 mm^2 here
