@@ -253,17 +253,34 @@ def tiny_unpushed():
     return ct, truth, res
 
 
-def test_a_fold_left_peeled_is_pushed_apart_and_shows_its_mucosa(tiny_run, tiny_unpushed):
+@pytest.fixture(scope="module")
+def tiny_unturned():
+    """The tiny J unfolded with the flap the push leaves not turned (rule 36 off): the push's own map."""
     import StomachUnfoldLib.methods.isometric as iso
 
-    m, plain = tiny_run[2].report["method"], tiny_unpushed[2].report["method"]
+    ct, truth = make_phantom("j", "tiny")
+    before = iso.FLIP_DEGREES
+    iso.FLIP_DEGREES = ()
+    try:
+        res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                     UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
+    finally:
+        iso.FLIP_DEGREES = before
+    return ct, truth, res
+
+
+def test_a_fold_left_peeled_is_pushed_apart_and_shows_its_mucosa(tiny_unturned, tiny_unpushed):
+    import StomachUnfoldLib.methods.isometric as iso
+
+    m, plain = tiny_unturned[2].report["method"], tiny_unpushed[2].report["method"]
     before, after = m["push_mm2"]                  # the tiny J still peels a large fold after every retry
     assert before == pytest.approx(plain["hidden_fold_mm2"]) and before > iso.PUSH_FROM_MM2
     assert m["push_kept"] and m["hidden_fold_mm2"] == pytest.approx(after) and after < 0.5 * before
     assert "push_mm2" not in plain
-    q, q0 = tiny_run[2].report["quality"], tiny_unpushed[2].report["quality"]
+    q, q0 = tiny_unturned[2].report["quality"], tiny_unpushed[2].report["quality"]
     assert q["visible_fraction"] > q0["visible_fraction"] and q["inverted_fraction"] == 0.0
     assert q["grade"] in ("excellent", "good")
+    assert "flip_retry_mm2" not in m
 
 
 def test_tiny_phantom_grade_and_distortion(tiny_run):
