@@ -2015,7 +2015,9 @@ def _flip_retry(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> 
     if best is None:
         return uv, f_keep, f_fold, fold_mm2, dict(info, flip_kept=None, **info_t)
     u2, fk2, ff2, fold2, info2 = best[2]
-    return u2, fk2, ff2, fold2, dict(info2, pair_weight=info["pair_weight"], flip_kept=float(best[1]), **info_t)
+    # the turned map's figures over the first map's (whose retries' traces stay in the report)
+    return u2, fk2, ff2, fold2, {**info, **info2, "pair_weight": info["pair_weight"], "flip_kept": float(best[1]),
+                                 **info_t}
 
 
 def _area_mm2(v: np.ndarray, f: np.ndarray) -> float:
