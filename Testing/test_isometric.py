@@ -237,36 +237,31 @@ def tiny_run():
     return ct, truth, res
 
 
-@pytest.fixture(scope="module")
-def tiny_unpushed():
-    """The tiny J unfolded with its peeled folds left peeled (no push): the fold chain before :func:`push_apart`."""
+def _tiny_with(name: str, value):
+    """The tiny J unfolded with the isometric module's constant ``name`` set to ``value`` for the run."""
     import StomachUnfoldLib.methods.isometric as iso
 
     ct, truth = make_phantom("j", "tiny")
-    before = iso.PUSH_FROM_MM2
-    iso.PUSH_FROM_MM2 = 1e9
+    before = getattr(iso, name)
+    setattr(iso, name, value)
     try:
         res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
                      UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
     finally:
-        iso.PUSH_FROM_MM2 = before
+        setattr(iso, name, before)
     return ct, truth, res
+
+
+@pytest.fixture(scope="module")
+def tiny_unpushed():
+    """The tiny J unfolded with its peeled folds left peeled (no push): the fold chain before :func:`push_apart`."""
+    return _tiny_with("PUSH_FROM_MM2", 1e9)
 
 
 @pytest.fixture(scope="module")
 def tiny_unturned():
     """The tiny J unfolded with the flap the push leaves not turned (rule 36 off): the push's own map."""
-    import StomachUnfoldLib.methods.isometric as iso
-
-    ct, truth = make_phantom("j", "tiny")
-    before = iso.FLIP_DEGREES
-    iso.FLIP_DEGREES = ()
-    try:
-        res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
-                     UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
-    finally:
-        iso.FLIP_DEGREES = before
-    return ct, truth, res
+    return _tiny_with("FLIP_DEGREES", ())
 
 
 def test_a_fold_left_peeled_is_pushed_apart_and_shows_its_mucosa(tiny_unturned, tiny_unpushed):
