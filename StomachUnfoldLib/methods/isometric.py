@@ -1813,7 +1813,7 @@ def _flatten(prep, cut, report) -> tuple:
             cut, (uv, f_keep, f_fold, fold_mm2, info), used_pairs, used_b, prep.pixel_mm,
             info["boundary_weight"], similar, check=(lambda: report(0.95)))
         if fold_mm2 + info["flat_defect_mm2"] > FLIP_FROM_MM2 and FLIP_DEGREES:
-            # still a fold the judge would count: the flap turned about its hinge, the map solved again from there
+            # still over twice a failure part (FLIP_FROM_MM2): the flap turned about its hinge, the map solved again
             uv, f_keep, f_fold, fold_mm2, info = _flip_retry(
                 cut, (uv, f_keep, f_fold, fold_mm2, info), used_pairs, bonly, b2, prep.pixel_mm,
                 check=(lambda: report(0.95)))
