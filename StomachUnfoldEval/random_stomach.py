@@ -1346,6 +1346,17 @@ def _surface_extents(model, P: np.ndarray, fr: np.ndarray, f: np.ndarray, vol: V
     return ext_r, ext_f
 
 
+def _refuse_if_outside(ct: Volume, ends: dict) -> None:
+    """Raise InputError if a drawn stomach's cardia or pylorus ({name: LPS mm}) falls outside the CT's grid."""
+    out = [n for n, p in ends.items() if not ct.contains_lps(np.asarray(p, float)[None])[0]]
+    if out:
+        lo, hi = ct.bounds_lps()
+        raise InputError(f"the drawn stomach does not fit in this CT: its {' and '.join(out)} "
+                         f"(RAS {', '.join(f'{x:.1f}' for x in lps_to_ras(np.asarray(ends[out[0]], float)))} mm) lies "
+                         f"outside the scan, which covers {hi[2] - lo[2]:.0f} mm head to foot; insert it into a CT of "
+                         f"the whole upper abdomen")
+
+
 def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, drawing: int | None = None, **overrides):
     """Paste a drawn stomach (lumen air/fluid, wall, markers; LPS mm, HU) into a real CT; returns (Volume, truth).
 
@@ -1365,6 +1376,7 @@ def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, draw
     d["oesophagus_open_mm"] = 0.0
     d["duodenum_open_mm"] = 0.0
     model = StomachModel(d)
+    _refuse_if_outside(ct, {"cardia": model.cardia_in, "pylorus": model.pylorus_in})
     mrng = np.random.default_rng(d["marker_seed"])
     G = _model_geodesics(model, mrng, d["n_markers"], d["fluid_depth_fraction"] if d["fluid"] else None)
     fluid_y = G["fluid_y"]
@@ -1419,12 +1431,4 @@ def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, draw
         m["in_volume"] = bool(ok)
     truth["dome_centre_lps"] = c.tolist()
     truth["seconds"] = {"total": time.perf_counter() - t0}
-    ends = {n: np.asarray(truth[f"{n}_lps"], float) for n in ("cardia", "pylorus")}
-    out = [n for n, p in ends.items() if not vol.contains_lps(p[None])[0]]
-    if out:
-        lo, hi = ct.bounds_lps()
-        raise InputError(f"the drawn stomach does not fit in this CT: its {' and '.join(out)} "
-                         f"(RAS {', '.join(f'{x:.1f}' for x in lps_to_ras(ends[out[0]]))} mm) lies outside the scan, "
-                         f"which covers {hi[2] - lo[2]:.0f} mm head to foot; insert it into a CT of the whole upper "
-                         f"abdomen")
     return vol, truth
