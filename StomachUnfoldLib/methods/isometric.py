@@ -1804,19 +1804,16 @@ def _flatten(prep, cut, report) -> tuple:
                 info["pair_weight"] = LIGHT_PAIR_WEIGHT
             info.update(trace)
     info.setdefault("pair_weight", PAIR_WEIGHT)
-    similar = info.pop("_similar", None)
-    if fold_mm2 > PUSH_FROM_MM2:
-        # a fold the judge would count is still peeled: pushed apart, with the terms the kept map was made with
-        used_pairs = light if info["pair_weight"] == LIGHT_PAIR_WEIGHT else pairs
-        used_b = bonly if info["boundary_weight"] == BOUNDARY_WEIGHT else b2
-        uv, f_keep, f_fold, fold_mm2, info = _push_retry(
-            cut, (uv, f_keep, f_fold, fold_mm2, info), used_pairs, used_b, prep.pixel_mm,
-            info["boundary_weight"], similar, check=(lambda: report(0.95)))
-        if fold_mm2 + info["flat_defect_mm2"] > FLIP_FROM_MM2 and FLIP_DEGREES:
-            # still over twice a failure part (FLIP_FROM_MM2): the flap turned about its hinge, the map solved again
-            uv, f_keep, f_fold, fold_mm2, info = _flip_retry(
-                cut, (uv, f_keep, f_fold, fold_mm2, info), used_pairs, bonly, b2, prep.pixel_mm,
-                check=(lambda: report(0.95)))
+    # a fold the judge would count still peeled is pushed apart, with the terms the kept map was made with
+    used_pairs = light if info["pair_weight"] == LIGHT_PAIR_WEIGHT else pairs
+    pushed = fold_mm2 > PUSH_FROM_MM2
+    uv, f_keep, f_fold, fold_mm2, info = _pushed(cut, (uv, f_keep, f_fold, fold_mm2, info), used_pairs, bonly, b2,
+                                                 prep.pixel_mm, check=(lambda: report(0.95)))
+    if pushed and fold_mm2 + info["flat_defect_mm2"] > FLIP_FROM_MM2 and FLIP_DEGREES:
+        # still over twice a failure part (FLIP_FROM_MM2): the flap turned about its hinge, the map solved again
+        uv, f_keep, f_fold, fold_mm2, info = _flip_retry(
+            cut, (uv, f_keep, f_fold, fold_mm2, info), used_pairs, bonly, b2, prep.pixel_mm,
+            check=(lambda: report(0.95)))
     info.update(_start_seconds=t_init, _pairs=int(len(pairs[2])), _pairs_seconds=t_pairs)
     return uv, f_keep, f_fold, fold_mm2, info
 
@@ -1957,6 +1954,18 @@ def _push_region(f: np.ndarray, uv: np.ndarray, fold):
     return d <= PUSH_NEAR_MM
 
 
+def _pushed(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> tuple:
+    """``current`` = (uv mm, kept and fold triangles, fold area mm^2, info) pushed apart (:func:`_push_retry`) when it
+    peels a fold over PUSH_FROM_MM2, with the boundary it was made with (``bonly`` at BOUNDARY_WEIGHT, else ``b2``)
+    and its as-similar region (taken out of info); else as it is."""
+    info = current[4]
+    similar = info.pop("_similar", None)
+    if current[3] <= PUSH_FROM_MM2:
+        return current
+    used_b = bonly if info["boundary_weight"] == BOUNDARY_WEIGHT else b2
+    return _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check)
+
+
 def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None) -> tuple:
     """The flat map with its folds pushed apart (:func:`push_apart`); ``current`` = (uv mm, kept and fold triangles,
     fold area mm^2, info) of the map so far, returned as it is or replaced by the pushed map's when that hides less
@@ -2002,11 +2011,8 @@ def _flip_retry(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> 
     best, trace = None, []
     for deg in FLIP_DEGREES:
         start = turn_flap(uv, f_keep, f_fold, deg)
-        got = _settled_map(cut, start, pairs, bonly, b2, s, None, check=check)
-        similar = got[4].pop("_similar", None)
-        if got[3] > PUSH_FROM_MM2:
-            used_b = bonly if got[4]["boundary_weight"] == BOUNDARY_WEIGHT else b2
-            got = _push_retry(cut, got, pairs, used_b, s, got[4]["boundary_weight"], similar, check=check)
+        got = _pushed(cut, _settled_map(cut, start, pairs, bonly, b2, s, None, check=check), pairs, bonly, b2, s,
+                      check=check)
         got_left = got[3] + got[4]["flat_defect_mm2"]
         trace.append([float(deg), got_left])
         if got_left < left and (best is None or got_left < best[0]):
