@@ -15,7 +15,7 @@ import numpy as np
 
 from .errors import InputError, PointError
 from .geometry import Volume, lps_to_ras
-from .params import UnfoldParameters
+from .params import AUTO_PIXEL_MAX_MM, UnfoldParameters
 from .progress import Progress
 from .volume_file import FileArray
 
@@ -80,10 +80,11 @@ class Prepared:
     @property
     def pixel_mm(self) -> float:
         """The unfolded view's voxel size (mm, the same along i, j and the depth): ``output_spacing_mm`` when set,
-        else the input CT's in-plane voxel size."""
+        else the input CT's in-plane voxel size, at most ``params.AUTO_PIXEL_MAX_MM``."""
         if self.params.output_spacing_mm:
             return float(self.params.output_spacing_mm)
-        return float(np.sqrt(self.ct.spacing[0] * self.ct.spacing[1]))
+        in_plane = float(np.sqrt(self.ct.spacing[0] * self.ct.spacing[1]))
+        return min(in_plane, AUTO_PIXEL_MAX_MM)
 
     @property
     def cell_mm(self) -> np.ndarray:

@@ -115,11 +115,17 @@ class SurfaceParameters(_Group):
                                  "lost a little accuracy: docs/benchmark/README.md)", 1000, 200000)
 
 
+#: The view's voxel (mm) when ``output_spacing_mm`` is not set is the CT's in-plane voxel size, but at most this, so
+#: that a 5 mm lesion spans at least three pixels (rule 37, docs/RULE37_view_pixel_cap.md).
+AUTO_PIXEL_MAX_MM = 1.5
+
+
 @dataclass
 class OutputParameters(_Group):
     """The unfolded volume and the report."""
 
-    output_spacing_mm: float | None = _p(None, "unfolded volume spacing in mm (default: input in-plane spacing; "
+    output_spacing_mm: float | None = _p(None, "unfolded volume spacing in mm (default: input in-plane spacing, at most "
+                                         f"{AUTO_PIXEL_MAX_MM:g}; "
                                          "over 5 mm a stomach's view is a few dozen pixels)", 0.0, 5.0, lo_open=True)
     clear_lumen: bool = _p(True, "with a mask: show the lumen contents as air in the unfolded volume")
     quality: bool = _p(True, "compute the automatic quality metrics and grade into the report")

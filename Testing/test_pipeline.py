@@ -10,6 +10,7 @@ from StomachUnfoldLib.cli import main
 from StomachUnfoldLib.errors import Cancelled, PointError
 from StomachUnfoldLib.geometry import lps_to_ras
 from StomachUnfoldEval.phantom import make_phantom, write_phantom
+from StomachUnfoldLib.params import AUTO_PIXEL_MAX_MM
 from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
 from StomachUnfoldEval.markers import marker_report, visible_markers
 from StomachUnfoldLib.quality import layer_runs, overlap_fraction
@@ -57,7 +58,7 @@ def test_output_axes_and_orientation(j_run):
     kk = vol.lps_to_index(mk)[:, 2]
     wall_k = np.nonzero((vol.array > -400).any(axis=(1, 2)))[0]
     assert np.median(kk) > np.median(wall_k)
-    assert np.allclose(vol.spacing, ct.spacing[0])
+    assert np.allclose(vol.spacing, min(ct.spacing[0], AUTO_PIXEL_MAX_MM))   # the CT's in-plane voxel, at most the cap
 
 
 def test_report_contents(j_run):
@@ -105,6 +106,22 @@ def test_the_output_spacing_is_the_view_voxel_of_every_method(method):
     assert np.allclose(res.unfolded.spacing, 1.0) and ct.spacing[0] > 1.5
     mapped = res.map_landmarks({m["id"]: m["lps"] for m in truth["markers"]})
     assert marker_report(res.unfolded, mapped)["n_seen"] == len(truth["markers"])
+
+
+def test_the_view_voxel_is_the_ct_in_plane_voxel_at_most_the_cap():
+    """Without --output-spacing-mm the view's voxel is the CT's in-plane voxel, but at most AUTO_PIXEL_MAX_MM (1.5 mm):
+    on the tiny J (about 1.8 mm) 1.5 mm, with every marker seen; on a 1.2 mm CT its own 1.2 mm."""
+    ct, truth = make_phantom("j", "tiny")
+    assert ct.spacing[0] > AUTO_PIXEL_MAX_MM == 1.5
+    res = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], UnfoldParameters(method="isometric"))
+    assert np.allclose(res.unfolded.spacing, AUTO_PIXEL_MAX_MM)
+    assert res.report["run"]["view_pixel_mm"] == pytest.approx([AUTO_PIXEL_MAX_MM] * 2)
+    mapped = res.map_landmarks({m["id"]: m["lps"] for m in truth["markers"]})
+    assert marker_report(res.unfolded, mapped)["n_seen"] == len(truth["markers"])
+    ct, truth = make_phantom("j", "small")
+    assert np.allclose(ct.spacing[:2], 1.2)
+    res = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], UnfoldParameters(method="cylindrical"))
+    assert np.allclose(res.unfolded.spacing, 1.2)
 
 
 def test_cli_writes_the_output_contract(tmp_path):
