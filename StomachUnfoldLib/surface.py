@@ -960,6 +960,12 @@ def flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):
         if RAY_INVERSE:  # where a view's ray passes through the point, that ray's pixel and depth instead
             on, uv_r, depth_r = _along_rays(p, cand, tree, inc_tris, v, f, vn, uv)
             uvp[on], depth[on] = uv_r[on], depth_r[on]
+        elif RAY_SIDE == "tissue":  # only a point in the tissue, where the rays are drawn, and a ray meeting it there
+            sel = np.flatnonzero(depth > 0)
+            if len(sel):
+                on, uv_r, depth_r = _along_rays(p[sel], cand[sel], tree, inc_tris, v, f, vn, uv)
+                on &= depth_r > 0
+                uvp[sel[on]], depth[sel[on]] = uv_r[on], depth_r[on]
         fk = k0 - depth / s
         res = np.stack([uvp[:, 0], uvp[:, 1], fk * s], 1)
         res[dist > max_dist] = np.nan
@@ -1011,6 +1017,11 @@ def flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):
 #: hybrids 308 -> 352 of 383 markers, but the small stomachs' median distortion rose 0.00002 and one hybrid lost 0.101
 #: point of visible mucosa (0.1 allowed): failed as written. Off (RAY_INVERSE).
 RAY_INVERSE = False
+#: Rule 38 (docs/RULE38_tissue_side_along_the_rays.md): "tissue" sends only the points on the tissue side of the wall
+#: (depth along the normal from their foot over 0) along the view's rays, where the view draws them, and keeps the
+#: foot of a point on the lumen side, where no ray is drawn. None: every point by its foot (RAY_INVERSE: every one
+#: along the rays).
+RAY_SIDE: str | None = None
 RAY_FOCUS_MM = 1.0
 RAY_FOCUS_VERTICES = 400
 

@@ -131,3 +131,28 @@ def test_the_inner_walls_blur_in_mm_is_the_same_on_isotropic_voxels(monkeypatch)
         monkeypatch.setattr(surface, "SURFACE_BLUR_IN_MM", in_mm)
         got.append([surface.surface_field(crop, lumen, False, step, start)[0] for step, start in ((1, 0), (2, 1))])
     assert all(np.array_equal(a, b) for a, b in zip(*got))
+
+
+def test_tissue_side_points_go_along_the_rays_and_lumen_side_ones_keep_their_foot(monkeypatch):
+    """Rule 38 (``surface.RAY_SIDE = "tissue"``): a point in the wall goes to the ray through it, exactly; a point on
+    the lumen side, where no ray is drawn, to the same place as with every point by its foot; a bead's centre under
+    its dome to the middle of the dome's image."""
+    v, f, vn, uv0 = _bent_sheet()
+    fwd, inv, uv = _maps(v, f, vn, uv0)     # the map reads RAY_SIDE when it is called
+    rng = np.random.default_rng(5)
+    t = rng.choice(np.flatnonzero(uv[f].min((1, 2)) > 4.0), 400)
+    lam = rng.dirichlet(np.ones(3), len(t))
+    sp = np.einsum("nc,ncx->nx", lam, v[f[t]])
+    n = unit(np.einsum("nc,ncx->nx", lam, vn[f[t]]))
+    inside = sp + rng.uniform(0.5, 4.0, len(t))[:, None] * n
+    lumen = sp - rng.uniform(0.5, 1.5, len(t))[:, None] * n
+    monkeypatch.setattr(surface, "RAY_SIDE", None)
+    foot_in, foot_lumen = fwd(inside), fwd(lumen)
+    monkeypatch.setattr(surface, "RAY_SIDE", "tissue")
+    there = fwd(inside)
+    assert np.abs(there[:, :2] - np.einsum("nc,ncx->nx", lam, uv[f[t]])).max() < 1e-6
+    assert np.abs(there[:, :2] - foot_in[:, :2]).max() > 0.5          # where the foot would have put them
+    assert np.array_equal(fwd(lumen), foot_lumen)
+    v, f, vn, uv0 = _domed_plane()
+    fwd, _, uvd = _maps(v, f, vn, uv0)
+    assert np.linalg.norm(fwd(np.array([[0.0, 0.0, 0.0]]))[0, :2] - uvd[0]) < 1.0
