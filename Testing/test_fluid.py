@@ -20,14 +20,17 @@ GEOMETRIES = {
     "identity": ((1.4, 1.4, 2.0), np.eye(3)),
     "flipped": ((1.3, 1.3, 1.8), np.diag([-1.0, -1.0, 1.0])),
     "y_on_k": ((1.5, 1.5, 2.0), np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])),
+    "thick": ((0.9, 0.9, 4.0), np.eye(3)),   # CT 03's 4.25 mm slices
 }
+REGULAR = ["identity", "flipped", "y_on_k"]
 
 
-def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, level_y=LEVEL_Y):
+def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, level_y=LEVEL_Y, noise_hu=25.0,
+            water_hu=10.0):
     """(Volume in HU, true fluid mask, true lumen mask) of the synthetic stomach; contents below the level:
-    'water' (10 HU), 'gas' (none: all air), 'tissue' (50 HU: a flat air boundary on solid tissue), 'leak'
+    'water' (``water_hu`` HU), 'gas' (none: all air), 'tissue' (50 HU: a flat air boundary on solid tissue), 'leak'
     (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm); ``level_y``: LPS y of
-    the level (mm; the lumen reaches y = 22 mm)."""
+    the level (mm; the lumen reaches y = 22 mm); ``noise_hu``: the noise's standard deviation (HU)."""
     sp, D = GEOMETRIES[geometry]
     sp = np.asarray(sp, float)
     lps_axis = np.argmax(np.abs(D), axis=0)                 # LPS axis of each of i, j, k
@@ -46,7 +49,7 @@ def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, level_y=
     hu[lumen] = -1000.0
     fluid = np.zeros(len(P), bool)
     if contents in ("water", "leak"):
-        hu[below] = 10.0
+        hu[below] = water_hu
         fluid = below
     if contents == "leak":                                    # a water-filled channel to the posterior side
         ch = (np.hypot(x, z) < 9.0) & (y > level_y)
@@ -56,7 +59,7 @@ def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, level_y=
         hu[below] = 50.0
         lumen = lumen & ~below
     arr = hu.reshape(size[::-1])
-    arr = ndimage.gaussian_filter(arr, 0.7) + np.random.default_rng(seed).normal(0.0, 25.0, arr.shape)
+    arr = ndimage.gaussian_filter(arr, 0.7) + np.random.default_rng(seed).normal(0.0, noise_hu, arr.shape)
     shape = tuple(size[::-1])
     return vol.with_array(np.round(arr).astype(np.int16)), fluid.reshape(shape), lumen.reshape(shape)
 
@@ -65,7 +68,7 @@ def dice(a, b):
     return 2.0 * np.count_nonzero(a & b) / max(1, np.count_nonzero(a) + np.count_nonzero(b))
 
 
-@pytest.mark.parametrize("geometry", list(GEOMETRIES))
+@pytest.mark.parametrize("geometry", REGULAR)
 def test_fluid_below_a_flat_level_joins_the_lumen(geometry):
     ct, fluid_true, lumen_true = make_ct(geometry)
     lumen, info = air_region(ct, CARDIA, PYLORUS)
@@ -138,7 +141,7 @@ def test_prepare_marks_a_lumen_with_fluid():
     assert prep_off.fluid_voxels == 0 and not prep_off.lumen_is_mask
 
 
-@pytest.mark.parametrize("geometry", list(GEOMETRIES))
+@pytest.mark.parametrize("geometry", REGULAR)
 def test_a_thin_wall_between_water_and_fat_is_not_taken_as_water(geometry):
     # a 2.2 mm wall, blurred, between the water (10 HU) and the fat (-90 HU) averages to water: the rays ran on to
     # the fat and a fifth of the "fluid" was that wall; water never borders fat, so the wall's voxel is dropped
@@ -192,3 +195,57 @@ def test_the_tail_of_a_dense_objects_blur_beside_the_water_joins_it():
     assert not np.any(out & (y >= 20))                          # nor the wall below the floor
     assert np.array_equal(out & (d > 7), water & (d > 7))       # nothing away from it
     assert np.array_equal(dense_object_edges(water, air, np.minimum(sm, 150.0), 25.0), water)   # no dense object: as is
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_deep_water_on_noisy_thick_slices_reaches_the_wall_by_evidence(monkeypatch, seed):
+    # 35 HU of noise on water at 14 HU, 4 mm slices: after the light smoothing a fifth of the water's voxels read
+    # over 25 HU, and rays ending at their first one left half the water out (rule 39's hybrids: up to 38 %)
+    import StomachUnfoldLib.preprocessing as pre
+
+    ct, fluid_true, lumen_true = make_ct("thick", seed=seed, level_y=0.0, noise_hu=35.0, water_hu=14.0)
+    air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    missed = {}
+    for mode in ("threshold", "evidence"):
+        monkeypatch.setattr(pre, "WATER_RUNS", mode)
+        fluid = air_region(ct, CARDIA, PYLORUS)[0] & ~air
+        n = np.count_nonzero(fluid_true)
+        missed[mode] = np.count_nonzero(fluid_true & ~fluid) / n
+        over = np.count_nonzero(fluid & ~lumen_true) / n
+        assert over < 0.02, (mode, over)       # neither takes the wall or the fat behind it
+    assert missed["threshold"] > 0.35
+    assert missed["evidence"] < 0.25 and missed["evidence"] < missed["threshold"] - 0.2
+
+
+def testwater_runs_end_at_the_best_evidence_and_before_a_thin_wall_with_fat_behind():
+    from StomachUnfoldLib.preprocessing import water_runs
+
+    p = 2                                            # air-water voxels
+    water = [10.0, 12.0, 30.0, 8.0, 11.0, 9.0]      # one noise voxel over 25 HU inside the water
+    rows = [
+        [-300.0, -60.0] + water + [45.0, 50.0, 48.0, 52.0, 50.0],    # a resolved wall: ends at its inner edge
+        [-300.0, -60.0] + water + [28.0, 20.0, -40.0, -80.0, 10.0],  # a thin wall, fat, then water-like tissue
+        [-300.0, -60.0] + water + [5.0, -40.0, -60.0, 10.0, 10.0],   # water straight onto fat (two voxels below -20)
+        [-300.0, 40.0] + [50.0] * 11,                                 # tissue right under the level
+    ]
+    prof = np.array(rows)
+    run = water_runs(prof, np.ones(prof.shape, bool), p, 25.0)
+    assert run.tolist() == [8, 8, 9, 1]   # past the noise voxel (the threshold rule ends the first three at 4)
+
+
+def test_a_one_voxel_gap_of_the_water_across_the_rays_is_closed():
+    from StomachUnfoldLib.preprocessing import close_water_gaps
+
+    fluid = np.zeros((5, 8, 6), bool)               # rays along axis 1 (posterior), the level at index 1
+    fluid[:, 2:6, 1:5] = True
+    fluid[2, 2:6, 1:5] = False                      # one slice of the water missing
+    fluid[:, 3, 0] = False
+    air = np.zeros_like(fluid)
+    air[:, 0:2, 1:5] = True
+    sm = np.full(fluid.shape, 12.0, np.float32)
+    sm[2, 4, 2] = 60.0                               # wall-bright: stays out
+    beyond = (np.arange(8) > 1).reshape(1, 8, 1)
+    out = close_water_gaps(fluid, air, sm, 1, beyond, 25.0)
+    assert out[2, 2:6, 1:5].sum() == 16 - 1 and not out[2, 4, 2]
+    assert not out[:, :, 0].any() and not out[:, :, 5].any()   # no lumen on both sides: nothing added
+    assert not (out & air).any()
