@@ -418,7 +418,11 @@ DENSE_REACH_VOX = 3
 #: water was left out, most where it is deep). ``"evidence"`` (rule 39, ``docs/RULE39_water_by_evidence.md``): where
 #: the evidence for water summed along the ray is largest (:func:`water_runs`), and a one-voxel gap of the water
 #: across the rays is closed (:func:`close_water_gaps`).
+#: ``"thick"`` (rule 40, ``docs/RULE40_water_by_evidence_on_thick_slices.md``): ``"evidence"`` on a CT whose largest
+#: spacing exceeds THICK_SLICE_MM (the smoothing, at most 1.5 mm, then weighs the next slice under 14 % and averages
+#: almost no noise away across slices), ``"threshold"`` on finer grids (where ``"evidence"`` took more wall than water).
 WATER_RUNS = "threshold"
+THICK_SLICE_MM = 3.0
 #: :func:`water_runs`: how far (HU x voxels) the summed evidence must fall below its best for the ray to end there,
 #: and each voxel's evidence clipped to +- this (HU)
 WATER_RUN_DROP = 20.0
@@ -432,10 +436,16 @@ WALL_FALL_VOX = 3
 WATER_GAP_MARGIN_HU = 10.0
 
 
-def _first_runs(ok: np.ndarray, prof: np.ndarray, inside: np.ndarray, n_partial: int, max_hu: float) -> np.ndarray:
-    """Voxels of water behind each level voxel by the rule WATER_RUNS: ``"threshold"``, up to the first voxel above
-    ``max_hu``, two in a row not ``ok`` or the end of the ray; ``"evidence"``, :func:`water_runs`."""
-    if WATER_RUNS == "evidence":
+def _by_evidence(ct: Volume) -> bool:
+    """Whether the water of ``ct`` ends by its summed evidence (WATER_RUNS, THICK_SLICE_MM)."""
+    return WATER_RUNS == "evidence" or (WATER_RUNS == "thick" and float(np.max(ct.spacing)) > THICK_SLICE_MM)
+
+
+def _first_runs(ok: np.ndarray, prof: np.ndarray, inside: np.ndarray, n_partial: int, max_hu: float,
+                evidence: bool) -> np.ndarray:
+    """Voxels of water behind each level voxel: up to the first voxel above ``max_hu``, two in a row not ``ok`` or
+    the end of the ray; with ``evidence``, :func:`water_runs`."""
+    if evidence:
         return water_runs(prof, inside, n_partial, max_hu)
     bad = ~ok
     stop = (bad & np.concatenate([bad[:, 1:], np.ones((len(bad), 1), bool)], 1)) | (prof > max_hu) | ~inside
@@ -580,8 +590,9 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     voxel where the water still ends in a fall to fat (a wall too thin to show a peak, :func:`_falling_floor`),
     plus the tail of a dense object's blur beside the water up to half-way to its peak (:func:`dense_object_edges`: a
     marker bead, a clip, contrast), so the mound it sits on under water is smaller. With ``WATER_RUNS = "evidence"``
-    (rule 39) a ray ends where its summed evidence for water is largest rather than at its first voxel above the range
-    (:func:`water_runs`), and one-voxel gaps of the water across the rays are closed (:func:`close_water_gaps`).
+    (rule 39; ``"thick"``, rule 40: on slices over THICK_SLICE_MM) a ray ends where its summed evidence for water is
+    largest rather than at its first voxel above the range (:func:`water_runs`), and one-voxel gaps of the water
+    across the rays are closed (:func:`close_water_gaps`).
     Fluid is kept only if at least ``FLUID_MIN_WATER_FRACTION`` of the level has two or more water voxels under it
     (each ray clipped to two voxels beyond that median; an air boundary lying flat on tissue has none), and refused
     with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
@@ -638,7 +649,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     prof = fwd[rel2[:, 0:1], rel2[:, 1:2], np.minimum(pos, fwd.shape[-1] - 1)]
     del fwd
     ok = inside & (prof <= max_hu) & ((prof >= FLUID_MIN_HU) | (offs[None, :] <= n_partial))
-    run = thin_wall_edge(prof, _first_runs(ok, prof, inside, n_partial, max_hu), n_partial, max_hu)
+    run = thin_wall_edge(prof, _first_runs(ok, prof, inside, n_partial, max_hu, _by_evidence(ct)), n_partial, max_hu)
     grid = tuple(hu.shape[a] for a in range(3) if a != ax)
     med = _level_median(run.astype(np.int64), rel2, grid, "constant")
     take = offs[None, :] <= np.minimum(run, med + 2)[:, None]
@@ -657,7 +668,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     fluid = np.zeros(shape, bool)
     fluid[tuple(vox.T)] = True
     fluid &= ~air
-    if WATER_RUNS == "evidence":
+    if _by_evidence(ct):
         along = np.arange(hu.shape[ax]).reshape([-1 if a == ax else 1 for a in range(3)])
         fluid[rbox] = close_water_gaps(fluid[rbox], air[rbox], sm, ax, along > rel[:, ax].min() if st > 0
                                        else along < rel[:, ax].max(), max_hu)

@@ -249,3 +249,18 @@ def test_a_one_voxel_gap_of_the_water_across_the_rays_is_closed():
     assert out[2, 2:6, 1:5].sum() == 16 - 1 and not out[2, 4, 2]
     assert not out[:, :, 0].any() and not out[:, :, 5].any()   # no lumen on both sides: nothing added
     assert not (out & air).any()
+
+
+def test_thick_mode_counts_evidence_only_on_slices_over_3_mm(monkeypatch):
+    # rule 40: the water of a 4 mm-slice CT ends by evidence, that of a 2 mm-slice CT by the threshold, to the voxel
+    import StomachUnfoldLib.preprocessing as pre
+
+    thick, _, _ = make_ct("thick", seed=0, level_y=0.0, noise_hu=35.0, water_hu=14.0)
+    fine, _, _ = make_ct("identity", seed=0, level_y=0.0, noise_hu=35.0, water_hu=14.0)
+    got = {}
+    for mode in ("threshold", "evidence", "thick"):
+        monkeypatch.setattr(pre, "WATER_RUNS", mode)
+        got[mode] = [air_region(ct, CARDIA, PYLORUS)[0] for ct in (thick, fine)]
+    assert not np.array_equal(got["threshold"][0], got["evidence"][0])
+    assert np.array_equal(got["thick"][0], got["evidence"][0])
+    assert np.array_equal(got["thick"][1], got["threshold"][1])
