@@ -419,7 +419,7 @@ DENSE_REACH_VOX = 3
 #: the evidence for water summed along the ray is largest (:func:`water_runs`), and a one-voxel gap of the water
 #: across the rays is closed (:func:`close_water_gaps`).
 #: ``"thick"`` (rule 40, ``docs/RULE40_water_by_evidence_on_thick_slices.md``): ``"evidence"`` on a CT whose largest
-#: spacing exceeds THICK_SLICE_MM (the smoothing, at most 1.5 mm, then weighs the next slice under 14 % and averages
+#: spacing exceeds THICK_SLICE_MM (the smoothing, at most 1.5 mm, then weighs the next slice under 13.5 % and averages
 #: almost no noise away across slices), ``"threshold"`` on finer grids (where ``"evidence"`` took more wall than water).
 WATER_RUNS = "threshold"
 THICK_SLICE_MM = 3.0
