@@ -415,9 +415,9 @@ DENSE_HU = 200.0
 DENSE_REACH_VOX = 3
 #: How each ray's water ends (:func:`fluid_below_level`). ``"threshold"``: at its first voxel above the water range
 #: (a noise voxel stops it: with 15-40 HU of noise on water at 5-15 HU, 13 % of the water of the drawn stomachs in CT
-#: 03's 4.25 mm slices was left out, up to 38 %, most where it is deep; 23 % on CT 01's 3 mm grid, 1.3 % on 1-2.5 mm). ``"evidence"`` (rule 39, ``docs/RULE39_water_by_evidence.md``): where
-#: the evidence for water summed along the ray is largest (:func:`water_runs`), and a one-voxel gap of the water
-#: across the rays is closed (:func:`close_water_gaps`).
+#: 03's 4.25 mm slices was left out, up to 38 %, most where it is deep; 23 % on CT 01's 3 mm grid, 1.3 % on 1-2.5 mm).
+#: ``"evidence"`` (rule 39, ``docs/RULE39_water_by_evidence.md``): where the evidence for water summed along the ray is
+#: largest (:func:`water_runs`), and a one-voxel gap of the water across the rays is closed (:func:`close_water_gaps`).
 #: ``"thick"`` (rule 40, ``docs/RULE40_water_by_evidence_on_thick_slices.md``): ``"evidence"`` on a CT whose largest
 #: spacing exceeds THICK_SLICE_MM (the smoothing, at most 1.5 mm, then weighs the next slice under 13.5 % and averages
 #: almost no noise away across slices), ``"threshold"`` on finer grids (where ``"evidence"`` took more wall than water).
@@ -427,8 +427,8 @@ THICK_SLICE_MM = 3.0
 #: and each voxel's evidence clipped to +- this (HU)
 WATER_RUN_DROP = 20.0
 WATER_EVIDENCE_CLIP_HU = 40.0
-#: A rise above the water range followed within WALL_FALL_VOX voxels by a fall below WALL_FALL_HU is a thin wall with fat
-#: behind it (water never borders fat): the ray ends there, however much water-like fat follows
+#: A rise above the water range followed within WALL_FALL_VOX voxels by a fall below WALL_FALL_HU is a thin wall with
+#: fat behind it (water never borders fat): the ray ends there, however much water-like fat follows
 WALL_FALL_HU = 0.0
 WALL_FALL_VOX = 3
 #: :func:`close_water_gaps`: a gap voxel joins the water only up to this many HU above the water range (a wall is
