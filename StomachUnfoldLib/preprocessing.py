@@ -420,7 +420,8 @@ DENSE_REACH_VOX = 3
 #: largest (:func:`water_runs`), and a one-voxel gap of the water across the rays is closed (:func:`close_water_gaps`).
 #: ``"thick"`` (rule 40, ``docs/RULE40_water_by_evidence_on_thick_slices.md``): ``"evidence"`` on a CT whose largest
 #: spacing exceeds THICK_SLICE_MM (the smoothing, at most 1.5 mm, then weighs the next slice under 13.5 % and averages
-#: almost no noise away across slices), ``"threshold"`` on finer grids (where ``"evidence"`` took more wall than water).
+#: almost no noise away across slices), ``"threshold"`` on finer grids (where ``"evidence"`` took in about as much
+#: wall as the water it added).
 WATER_RUNS = "threshold"
 THICK_SLICE_MM = 3.0
 #: :func:`water_runs`: how far (HU x voxels) the summed evidence must fall below its best for the ray to end there,
