@@ -126,3 +126,29 @@ def test_a_point_clicked_deep_in_a_wide_lumen_is_warned_of_and_a_point_at_its_op
                   [-60.0, -30.0, -30.0])
     cl_t = np.stack([np.linspace(-38.0, 38.0, 39), np.zeros(39), np.zeros(39)], 1)
     assert opening_warnings(tube, cl_t) == []
+
+
+def test_the_hash_sample_keeps_the_same_mucosa_points_where_two_lumens_agree():
+    # an ellipsoidal lumen and the same one with a bump on one side: the judge's "hash" sample keeps its points away
+    # from the bump, where a random draw from the edge's list picks another sample
+    from StomachUnfoldLib.quality import mucosa_points
+
+    k, j, i = np.mgrid[0:60, 0:60, 0:70]
+    base = ((i - 35) / 28.0) ** 2 + ((j - 30) / 24.0) ** 2 + ((k - 30) / 24.0) ** 2 < 1.0
+    bumped = base | ((i - 62) ** 2 + (j - 30) ** 2 + (k - 30) ** 2 < 16)
+    vol = lambda m: Volume(m.astype(np.uint8), (1.0, 1.0, 2.0), (-35.0, -30.0, -60.0), np.eye(3))  # noqa: E731
+    n = 3000
+    far = lambda p: p[:, 0] < 10.0  # noqa: E731   LPS x: far from the bump at x = 27 mm
+    shared = {}
+    for sample in ("hash", "draw"):
+        a = mucosa_points(vol(base), max_points=n, sample=sample)
+        b = mucosa_points(vol(bumped), max_points=n, sample=sample)
+        assert len(a) == len(b) == n
+        sa = {tuple(np.round(p, 3)) for p in a[far(a)]}
+        sb = {tuple(np.round(p, 3)) for p in b[far(b)]}
+        shared[sample] = len(sa & sb) / max(len(sa), 1)
+    assert shared["hash"] > 0.97 and shared["draw"] < 0.7
+    again = mucosa_points(vol(base), max_points=n, sample="hash")
+    assert np.array_equal(again, mucosa_points(vol(base), max_points=n, sample="hash"))
+    with pytest.raises(ValueError, match="sample"):
+        mucosa_points(vol(base), max_points=n, sample="random")
