@@ -10,7 +10,6 @@ stomach mask -> crop -> centreline -> incision line; the wall region when the me
 """
 from __future__ import annotations
 
-import functools
 import os
 import resource
 import secrets
@@ -252,13 +251,11 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
         prep.seconds["reading"] += scan_s
     if method.name in WALL_MODEL_METHODS:
         check_model_memory(prep)
-    from . import quality
-    from .quality import mucosa_points, quality_metrics
+    from .quality import judge_mucosa_points, quality_metrics
 
     centerline_lps = np.asarray(prep.centerline.points_lps)
     # the grade's mucosa points depend only on the front end: drawn beside the method where a core is spare
-    judge_points = functools.partial(mucosa_points, sample=quality.JUDGE_SAMPLE)
-    with (Beside(judge_points, prep.lumen_crop, centerline_lps, checked=False) if params.quality
+    with (Beside(judge_mucosa_points, prep.lumen_crop, centerline_lps, checked=False) if params.quality
           else nullcontext()) as mucosa:
         out = method.unfold(prep, prog.sub("method", *span["method"]))
         seconds = {**prep.seconds, **out.seconds}

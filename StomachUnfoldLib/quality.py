@@ -14,8 +14,8 @@ from .geometry import Volume
 from .preprocessing import lumen_edge
 from .view import first_hit
 
-__all__ = ["layer_runs", "overlap_fraction", "visible_points", "mucosa_points", "onto_wall", "surface_distortion",
-           "inverted_fraction", "stretched_fraction", "quality_metrics", "GRADE_THRESHOLDS"]
+__all__ = ["layer_runs", "overlap_fraction", "visible_points", "mucosa_points", "judge_mucosa_points", "onto_wall",
+           "surface_distortion", "inverted_fraction", "stretched_fraction", "quality_metrics", "GRADE_THRESHOLDS"]
 
 
 def layer_runs(unfolded: Volume, threshold_hu: float = -400.0, min_gap_mm: float = 1.5) -> np.ndarray:
@@ -129,6 +129,11 @@ def mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None, 
     return onto_wall(pts, lumen_crop)
 
 
+def judge_mucosa_points(lumen_crop: Volume, centerline_lps: np.ndarray | None = None) -> np.ndarray:
+    """The judge's mucosa points (LPS mm): :func:`mucosa_points` with its sample JUDGE_SAMPLE."""
+    return mucosa_points(lumen_crop, centerline_lps, sample=JUDGE_SAMPLE)
+
+
 def onto_wall(points_lps: np.ndarray, lumen_crop: Volume, sigma_vox: float = 1.0) -> np.ndarray:
     """Move lumen-edge points (LPS mm) outward along the lumen's normal onto its boundary (the mucosa surface).
 
@@ -238,15 +243,13 @@ def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, cente
     DistortionMap's ``multiple``) marks pixels where more than one piece of the mucosa's surface maps: a fold-over
     of a surface map that the volume, resampled from one piece per pixel, cannot show as a second layer (for a
     surface method's triangle sheet; a volumetric model's folds show as layers). ``points_lps``: the mucosa points
-    (LPS mm) when already drawn, ``mucosa_points(lumen_crop, centerline_lps, sample=JUDGE_SAMPLE)`` (else drawn
-    here).
+    (LPS mm) when already drawn, :func:`judge_mucosa_points` (else drawn here).
     """
     report = progress or (lambda fraction: None)
     k_hit, _ = first_hit(vol, threshold_hu)
     seen = k_hit >= 0
     # visible fraction: mucosa points mapped into the view whose column's first hit is at their depth
-    pts = (mucosa_points(lumen_crop, centerline_lps, sample=JUDGE_SAMPLE) if points_lps is None
-           else np.asarray(points_lps, float))
+    pts = judge_mucosa_points(lumen_crop, centerline_lps) if points_lps is None else np.asarray(points_lps, float)
     report(0.05)
     mapped = np.zeros((len(pts), 3))
     for a in range(0, len(pts), 1000):
