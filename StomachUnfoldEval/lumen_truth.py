@@ -40,11 +40,7 @@ def lumen_against_drawn(ct: Volume, truth: dict, lumen: np.ndarray, region: str 
     if region == "water" and level is None:
         return out
     model = StomachModel(truth["draw"])
-    corners = np.array([[a, b, c] for a in (model.lo[0], model.hi[0]) for b in (model.lo[1], model.hi[1])
-                        for c in (model.lo[2], model.hi[2])])
-    ijk = ct.lps_to_index(corners)
-    lo = np.maximum(np.floor(ijk.min(0)).astype(int), 0)
-    hi = np.minimum(np.ceil(ijk.max(0)).astype(int) + 1, np.array(ct.size))
+    lo, hi = model.index_box(ct)
     if np.any(hi <= lo):
         return out
     drawn = missed = over = 0

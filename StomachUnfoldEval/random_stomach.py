@@ -366,6 +366,15 @@ class StomachModel:
         # interpolation error of the 2 mm grid: Lipschitz constant (about 1, more with rugae) x half a diagonal
         self.band = 2.0 * h + (float(self.d["rugae_height_mm"]) if self.d["rugae"] else 0.0)
 
+    def index_box(self, vol: Volume, pad_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) (i, j, k) voxel index bounds on ``vol``'s grid (hi exclusive, clipped to it) of the model's box
+        (lumen and wall, LPS mm) grown by ``pad_mm`` mm."""
+        lo, hi = self.lo - pad_mm, self.hi + pad_mm
+        corners = np.array([[a, b, e] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for e in (lo[2], hi[2])])
+        ijk = vol.lps_to_index(corners)
+        return (np.maximum(np.floor(ijk.min(0)).astype(int), 0),
+                np.minimum(np.ceil(ijk.max(0)).astype(int) + 1, np.array(vol.size)))
+
     def fast(self, P, band: float | None = None, outer: bool = True):
         """(f_r, f) at LPS points (N,3): coarse-grid interpolation, exact where within ``band`` mm of a surface."""
         P = np.asarray(P, float)
@@ -1381,12 +1390,7 @@ def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, draw
     G = _model_geodesics(model, mrng, d["n_markers"], d["fluid_depth_fraction"] if d["fluid"] else None)
     fluid_y = G["fluid_y"]
     arr = np.array(ct.array, dtype=np.float32, copy=True)
-    # index box of the model (lumen + wall + halo) and of the tubes near it
-    lo, hi = model.lo - halo_mm - 2, model.hi + halo_mm + 2
-    corners = np.array([[a, b, e] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for e in (lo[2], hi[2])])
-    ijk = ct.lps_to_index(corners)
-    i0 = np.maximum(np.floor(ijk.min(0)).astype(int), 0)
-    i1 = np.minimum(np.ceil(ijk.max(0)).astype(int) + 1, np.array(ct.size))
+    i0, i1 = model.index_box(ct, halo_mm + 2)  # index box of the model (lumen + wall + halo) and of the tubes near it
     sp = ct.spacing
     drawing = HYBRID_DRAWING if drawing is None else int(drawing)
     level_ext = (float(voxel_extent_mm(np.array([[0.0, 1.0, 0.0]]), ct)[0]) if drawing >= 2  # across the fluid level

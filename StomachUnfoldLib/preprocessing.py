@@ -442,14 +442,18 @@ def _by_evidence(ct: Volume) -> bool:
     return WATER_RUNS == "evidence" or (WATER_RUNS == "thick" and float(np.max(ct.spacing)) > THICK_SLICE_MM)
 
 
+def _this_and_next(mask: np.ndarray) -> np.ndarray:
+    """Where a ray's voxel and the next one along it (the end of the ray counts as one) are both set in ``mask``."""
+    return mask & np.concatenate([mask[:, 1:], np.ones((len(mask), 1), bool)], 1)
+
+
 def _first_runs(ok: np.ndarray, prof: np.ndarray, inside: np.ndarray, n_partial: int, max_hu: float,
                 evidence: bool) -> np.ndarray:
     """Voxels of water behind each level voxel: up to the first voxel above ``max_hu``, two in a row not ``ok`` or
     the end of the ray; with ``evidence``, :func:`water_runs`."""
     if evidence:
         return water_runs(prof, inside, n_partial, max_hu)
-    bad = ~ok
-    stop = (bad & np.concatenate([bad[:, 1:], np.ones((len(bad), 1), bool)], 1)) | (prof > max_hu) | ~inside
+    stop = _this_and_next(~ok) | (prof > max_hu) | ~inside
     stop[:, -1] = True
     return np.argmax(stop, axis=1)
 
@@ -469,7 +473,7 @@ def water_runs(prof: np.ndarray, inside: np.ndarray, n_partial: int, max_hu: flo
     col = np.arange(m)[None, :]
     low = inside & (prof < FLUID_MIN_HU)
     low[:, :n_partial] = False
-    hard = (low & np.concatenate([low[:, 1:], np.ones((n, 1), bool)], 1)) | ~inside
+    hard = _this_and_next(low) | ~inside
     hard[:, :n_partial] |= prof[:, :n_partial] > max_hu
     fall = inside & (prof < WALL_FALL_HU)
     after = np.zeros_like(fall)
@@ -650,7 +654,8 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     prof = fwd[rel2[:, 0:1], rel2[:, 1:2], np.minimum(pos, fwd.shape[-1] - 1)]
     del fwd
     ok = inside & (prof <= max_hu) & ((prof >= FLUID_MIN_HU) | (offs[None, :] <= n_partial))
-    run = thin_wall_edge(prof, _first_runs(ok, prof, inside, n_partial, max_hu, _by_evidence(ct)), n_partial, max_hu)
+    evidence = _by_evidence(ct)
+    run = thin_wall_edge(prof, _first_runs(ok, prof, inside, n_partial, max_hu, evidence), n_partial, max_hu)
     grid = tuple(hu.shape[a] for a in range(3) if a != ax)
     med = _level_median(run.astype(np.int64), rel2, grid, "constant")
     take = offs[None, :] <= np.minimum(run, med + 2)[:, None]
@@ -669,7 +674,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     fluid = np.zeros(shape, bool)
     fluid[tuple(vox.T)] = True
     fluid &= ~air
-    if _by_evidence(ct):
+    if evidence:
         along = np.arange(hu.shape[ax]).reshape([-1 if a == ax else 1 for a in range(3)])
         fluid[rbox] = close_water_gaps(fluid[rbox], air[rbox], sm, ax, along > rel[:, ax].min() if st > 0
                                        else along < rel[:, ax].max(), max_hu)

@@ -28,11 +28,7 @@ def main(out: str) -> None:
     for mode in ("threshold", "evidence"):
         pre.WATER_RUNS = mode
         lumens[mode] = pre.air_region(ct, cardia, pylorus)[0]
-    corners = np.array([[a, b, e] for a in (model.lo[0], model.hi[0]) for b in (model.lo[1], model.hi[1])
-                        for e in (model.lo[2], model.hi[2])])
-    ijk = ct.lps_to_index(corners)
-    lo = np.maximum(np.floor(ijk.min(0)).astype(int), 0)
-    hi = np.minimum(np.ceil(ijk.max(0)).astype(int) + 1, np.array(ct.size))
+    lo, hi = model.index_box(ct)
     k, j = np.mgrid[lo[2]:hi[2], lo[1]:hi[1]]
     P = ct.index_to_lps(np.stack([np.full(k.size, COLUMN_I), j.ravel(), k.ravel()], 1).astype(float))
     drawn = model.fast(P)[0].reshape(k.shape)          # signed distance to the drawn lumen (mm, negative inside)
