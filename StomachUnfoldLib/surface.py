@@ -651,7 +651,7 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
     arr = to_int16(arr)
     pinholes = fill_pinholes(arr, tri=tri)                # on the stored HU: the view's reader sees the same
     vol = Volume(arr, np.full(3, s), np.zeros(3), np.eye(3))
-    to_unfolded, to_original = flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps)
+    to_unfolded, to_original = flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps, view=vol)
     mesh = Mesh(v, np.concatenate([uv, np.full((len(uv), 1), k0 * s)], 1), f, "triangle", f)
     info = {"size_ij": [ni, nj], "depth_samples_k": nk, "spacing_mm": s,
             "param_overlap_pixel_fraction": float((hits > 1).sum() / max(int(covered.sum()), 1)),
@@ -907,11 +907,31 @@ def _outline_squares(uv, f, tri, bary, s, step_px: float = 0.5):
     bary.reshape(-1, 3)[lin] = q
 
 
-def flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):
+def flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None, view: Volume | None = None):
     """The two maps of a flattened surface: CT LPS mm -> unfolded LPS mm (by the foot on a triangle round the nearest
-    vertex, or along the view's rays with RAY_INVERSE), and back through the raster (tri, bary; pixel ``s`` mm, the
-    surface at slice ``k0``, wall ``w`` mm)."""
+    vertex, or along the view's rays with RAY_INVERSE / RAY_SIDE), and back through the raster (tri, bary; pixel ``s``
+    mm, the surface at slice ``k0``, wall ``w`` mm). ``view``: the unfolded Volume (HU) drawn from this raster, read by
+    RAY_SIDE "shown" to tell where the view shows a point."""
     nj, ni = tri.shape
+    first: list = []                     # the view's first-hit k per pixel, read once when first needed
+
+    def shown(uvp, depth) -> np.ndarray:
+        """Whether the view's first tissue (view.first_hit) along the pixel of uvp (mm) lies within SHOWN_VOXELS
+        voxels or SHOWN_MM mm of the depth (mm), as the judge (quality.visible_points) tells a point seen."""
+        if view is None:
+            return np.ones(len(uvp), bool)
+        if not first:
+            from .view import first_hit
+
+            first.append(first_hit(view)[0])
+        kh = first[0]
+        ii, jj = np.rint(uvp[:, 0] / s).astype(np.int64), np.rint(uvp[:, 1] / s).astype(np.int64)
+        ok = (ii >= 0) & (ii < kh.shape[1]) & (jj >= 0) & (jj < kh.shape[0])
+        hit = np.full(len(uvp), -1, np.int64)
+        hit[ok] = kh[jj[ok], ii[ok]]
+        tol = max(SHOWN_VOXELS, SHOWN_MM / s)
+        return (hit >= 0) & (np.abs(hit - (k0 - depth / s)) <= tol)
+
     # --- map from the CT ------------------------------------------------------------------------------------
     tree = cKDTree(v)
     hidden = cKDTree(np.asarray(hidden_lps, float)) if hidden_lps is not None and len(hidden_lps) else None
@@ -960,11 +980,13 @@ def flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None):
         if RAY_INVERSE:  # where a view's ray passes through the point, that ray's pixel and depth instead
             on, uv_r, depth_r = _along_rays(p, cand, tree, inc_tris, v, f, vn, uv)
             uvp[on], depth[on] = uv_r[on], depth_r[on]
-        elif RAY_SIDE == "tissue":  # only a point in the tissue, where the rays are drawn, and a ray meeting it there
+        elif RAY_SIDE in ("tissue", "shown"):  # only a point in the tissue, where the rays are drawn, and a ray meeting it there
             sel = np.flatnonzero(depth > 0)
             if len(sel):
                 on, uv_r, depth_r = _along_rays(p[sel], cand[sel], tree, inc_tris, v, f, vn, uv)
                 on &= depth_r > 0
+                if RAY_SIDE == "shown":  # not where the view shows the point at its foot and not along the ray
+                    on &= ~(shown(uvp[sel], depth[sel]) & ~shown(uv_r, depth_r))
                 uvp[sel[on]], depth[sel[on]] = uv_r[on], depth_r[on]
         fk = k0 - depth / s
         res = np.stack([uvp[:, 0], uvp[:, 1], fk * s], 1)
@@ -1023,6 +1045,12 @@ RAY_INVERSE = False
 #: along the rays). It saw 323 -> 373 of 408 markers on CT 03's new hybrids and lowered the marker distortion on
 #: every set, but failed its decision sets when one hybrid already graded fair lost 0.25 point of visible mucosa: off.
 RAY_SIDE: str | None = None
+#: Rule 41 (docs/RULE41_ray_where_shown.md): "shown" is rule 38 but a point the view shows at its foot and not along the
+#: ray keeps its foot: of the two places, the one where the view draws it. The view is the same to the bit.
+#: A point is shown at a pixel when the view's first tissue there lies within SHOWN_VOXELS voxels or SHOWN_MM mm of its
+#: depth (the judge's tolerance, quality.visible_points).
+SHOWN_VOXELS = 2.0
+SHOWN_MM = 2.5
 RAY_FOCUS_MM = 1.0
 RAY_FOCUS_VERTICES = 400
 
