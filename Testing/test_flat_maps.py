@@ -156,3 +156,44 @@ def test_tissue_side_points_go_along_the_rays_and_lumen_side_ones_keep_their_foo
     v, f, vn, uv0 = _domed_plane()
     fwd, _, uvd = _maps(v, f, vn, uv0)
     assert np.linalg.norm(fwd(np.array([[0.0, 0.0, 0.0]]))[0, :2] - uvd[0]) < 1.0
+
+
+def test_a_wall_point_keeps_its_foot_only_where_the_view_shows_it_there_and_not_along_the_ray(monkeypatch):
+    """Rule 41 (``surface.RAY_SIDE = "shown"``): of the two places, the ray through a wall point and its foot, the map
+    takes the one where the view shows the point (the judge's test), and the ray where both or neither do; so no point
+    the foot showed is lost, and without a view it is rule 38."""
+    from StomachUnfoldLib.geometry import Volume
+    from StomachUnfoldLib.quality import visible_points
+    from StomachUnfoldLib.view import first_hit
+
+    v, f, vn, uv0 = _bent_sheet()
+    s, k0 = 0.5, 8.0
+    uv = uv0 - uv0.min(0) + s
+    ni, nj = int(np.ceil(uv[:, 0].max() / s)) + 2, int(np.ceil(uv[:, 1].max() / s)) + 2
+    tri, bary, _ = view_raster(uv, f, (nj, ni), s, None, open_mouths=True)
+    rng = np.random.default_rng(11)
+    # the view's first tissue at depth 0 or 4 mm, in blocks of 2 x 2 mm
+    top = k0 - rng.choice([0.0, 4.0], size=(nj // 4 + 1, ni // 4 + 1)).repeat(4, 0).repeat(4, 1)[:nj, :ni] / s
+    arr = np.where(np.arange(16)[:, None, None] <= top[None], 40.0, -1024.0).astype(np.float32)
+    view = Volume(arr, np.full(3, s), np.zeros(3), np.eye(3))
+    k_hit = first_hit(view)[0]
+    t = rng.choice(np.flatnonzero(uv[f].min((1, 2)) > 4.0), 3000)
+    lam = rng.dirichlet(np.ones(3), len(t))
+    sp = np.einsum("nc,ncx->nx", lam, v[f[t]])
+    p = sp + rng.uniform(0.5, 4.0, len(t))[:, None] * unit(np.einsum("nc,ncx->nx", lam, vn[f[t]]))
+    got = {}
+    for mode in (None, "tissue", "shown"):
+        monkeypatch.setattr(surface, "RAY_SIDE", mode)
+        fwd, _ = flat_maps(v, f, vn, uv, tri, bary, s, k0, 4.0, view=view)
+        m = fwd(p)
+        got[mode] = (m, visible_points(view, m, k_hit))
+    foot, ray, both = got[None], got["tissue"], got["shown"]
+    kept = np.any(both[0] != ray[0], axis=1)
+    assert kept.sum() > 20                                              # the rule acted
+    assert np.array_equal(both[0][kept], foot[0][kept])                 # ... by keeping the foot
+    assert np.all(foot[1][kept] & ~ray[1][kept])                        # ... only where the foot alone shows it
+    assert np.all(both[1] >= foot[1]) and np.all(both[1] >= ray[1])     # no point lost against either
+    assert np.any(both[1] & ~foot[1])                                   # and some shown only along the ray
+    monkeypatch.setattr(surface, "RAY_SIDE", "shown")
+    fwd, _ = flat_maps(v, f, vn, uv, tri, bary, s, k0, 4.0)             # no view: rule 38
+    assert np.array_equal(fwd(p), ray[0])
