@@ -1,5 +1,6 @@
 """The surface methods' map between the CT and the view: with rule 33 (``surface.RAY_INVERSE``, off on main) a point
-goes to the pixel whose ray passes through it; without it, to its foot on the nearest triangle."""
+goes to the pixel whose ray passes through it; without it, to its foot on the nearest triangle; with rule 41
+(``surface.RAY_SIDE = "shown"``, the default) a point in the wall to the ray through it unless only its foot shows it."""
 import numpy as np
 import pytest
 
@@ -40,6 +41,7 @@ def _bent_sheet():
 @pytest.mark.parametrize("ray_inverse", [True, False])
 def test_a_point_in_the_wall_goes_to_the_ray_through_it(monkeypatch, ray_inverse):
     monkeypatch.setattr(surface, "RAY_INVERSE", ray_inverse)
+    monkeypatch.setattr(surface, "RAY_SIDE", None)             # without rule 33: every point by its foot
     v, f, vn, uv = _bent_sheet()
     fwd, inv, uv = _maps(v, f, vn, uv)
     rng = np.random.default_rng(3)
