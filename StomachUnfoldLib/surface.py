@@ -980,7 +980,7 @@ def flat_maps(v, f, vn, uv, tri, bary, s, k0, w, hidden_lps=None, view: Volume |
         if RAY_INVERSE:  # where a view's ray passes through the point, that ray's pixel and depth instead
             on, uv_r, depth_r = _along_rays(p, cand, tree, inc_tris, v, f, vn, uv)
             uvp[on], depth[on] = uv_r[on], depth_r[on]
-        elif RAY_SIDE in ("tissue", "shown"):  # only a point in the tissue, where the rays are drawn, and a ray meeting it there
+        elif RAY_SIDE in ("tissue", "shown"):  # a point in the tissue, where the rays are drawn, by a ray meeting it there
             sel = np.flatnonzero(depth > 0)
             if len(sel):
                 on, uv_r, depth_r = _along_rays(p[sel], cand[sel], tree, inc_tris, v, f, vn, uv)

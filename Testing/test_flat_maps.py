@@ -41,7 +41,7 @@ def _bent_sheet():
 @pytest.mark.parametrize("ray_inverse", [True, False])
 def test_a_point_in_the_wall_goes_to_the_ray_through_it(monkeypatch, ray_inverse):
     monkeypatch.setattr(surface, "RAY_INVERSE", ray_inverse)
-    monkeypatch.setattr(surface, "RAY_SIDE", None)             # without rule 33: every point by its foot
+    monkeypatch.setattr(surface, "RAY_SIDE", None)             # off, so without rule 33 every point goes by its foot
     v, f, vn, uv = _bent_sheet()
     fwd, inv, uv = _maps(v, f, vn, uv)
     rng = np.random.default_rng(3)
