@@ -11,7 +11,7 @@ import numpy as np
 
 from StomachUnfoldLib.geometry import Volume
 
-from .random_stomach import StomachModel
+from .random_stomach import StomachModel, box_slabs
 
 __all__ = ["lumen_against_drawn"]
 
@@ -45,10 +45,7 @@ def lumen_against_drawn(ct: Volume, truth: dict, lumen: np.ndarray, region: str 
         return out
     drawn = missed = over = 0
     depths = []
-    for k0 in range(lo[2], hi[2], 8):                  # a slab of slices at a time: the box can be large
-        k1 = min(hi[2], k0 + 8)
-        k, j, i = np.mgrid[k0:k1, lo[1]:hi[1], lo[0]:hi[0]]
-        P = ct.index_to_lps(np.stack([i.ravel(), j.ravel(), k.ravel()], 1).astype(float))
+    for k0, k1, P in box_slabs(ct, lo, hi):             # a slab of slices at a time: the box can be large
         fr = model.fast(P)[0]
         inside = P[:, 1] > level + below_level_mm if region == "water" else np.ones(len(P), bool)
         found = lumen[k0:k1, lo[1]:hi[1], lo[0]:hi[0]].ravel()

@@ -1366,6 +1366,16 @@ def _refuse_if_outside(ct: Volume, ends: dict) -> None:
                          f"the whole upper abdomen")
 
 
+def box_slabs(vol: Volume, lo, hi, slices: int = 8):
+    """Walk an index box of ``vol`` (lo, hi: (i, j, k), hi exclusive) ``slices`` slices at a time: yields (k0, k1, P),
+    P the LPS mm (N, 3) of the slab's voxel centres in (k, j, i) order, so a slab of ``vol.array[k0:k1]`` in the box,
+    raveled, lines up with it."""
+    for k0 in range(lo[2], hi[2], slices):
+        k1 = min(hi[2], k0 + slices)
+        k, j, i = np.mgrid[k0:k1, lo[1]:hi[1], lo[0]:hi[0]]
+        yield k0, k1, vol.index_to_lps(np.stack([i.ravel(), j.ravel(), k.ravel()], 1).astype(float))
+
+
 def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, drawing: int | None = None, **overrides):
     """Paste a drawn stomach (lumen air/fluid, wall, markers; LPS mm, HU) into a real CT; returns (Volume, truth).
 
@@ -1397,10 +1407,7 @@ def insert_into_ct(ct: Volume, seed, centre_lps=None, halo_mm: float = 3.0, draw
                  else float(np.mean(sp)))
     nrng = np.random.default_rng(d["noise_seed"])
     if np.all(i1 > i0):
-        for k0 in range(i0[2], i1[2], 8):
-            k1 = min(i1[2], k0 + 8)
-            k, j, i = np.mgrid[k0:k1, i0[1]:i1[1], i0[0]:i1[0]]
-            P = ct.index_to_lps(np.stack([i.ravel(), j.ravel(), k.ravel()], 1).astype(float))
+        for k0, k1, P in box_slabs(ct, i0, i1):
             fr, f = model.fast(P)
             cur = arr[k0:k1, i0[1]:i1[1], i0[0]:i1[0]].reshape(-1)
             if drawing >= 2:                                           # a slice's thickness where a wall lies flat

@@ -20,6 +20,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from make_normals_figure import draw_marked_view  # noqa: E402  (docs/, the script's own folder)
 from StomachUnfoldEval import bench  # noqa: E402
 from StomachUnfoldEval.markers import _marker_regions, marker_report  # noqa: E402
 from StomachUnfoldLib import surface, view  # noqa: E402
@@ -69,18 +70,10 @@ def main(argv=None) -> int:
     rows = ["| CT 03 hybrid | markers seen, by the foot | rule 41 |", "|---|---|---|"]
     for r, seed in enumerate(seeds):
         img, lab, s, out = _run(seed)
-        h, w = img.shape[:2]
-        ext = (-0.5 * s, (w - 0.5) * s, -0.5 * s, (h - 0.5) * s)          # image rows top = high j
         for c, (mode, title) in enumerate(MODES):
             ij, rep = out[mode]
             ax = axes[r, c]
-            ax.imshow(img, extent=ext)
-            for k in np.unique(lab[lab > 0]):                            # the judge's bead regions, outlined
-                ax.contour(lab == k, levels=[0.5], colors=["cyan"], linewidths=0.6, origin="upper", extent=ext)
-            for mid, p in ij.items():
-                if np.all(np.isfinite(p)):
-                    ok = rep["markers"][mid]["seen"]
-                    ax.plot(p[0] * s, p[1] * s, "+", color="lime" if ok else "red", ms=11, mew=1.8)
+            draw_marked_view(ax, img, lab, s, ij, rep)
             ax.set_title(f"hybrid 03-{seed}: {title}; {rep['n_seen']}/{rep['n_total']} markers", fontsize=9)
             ax.set_xlabel("mm")
         rows.append(f"| {seed} | {out[None][1]['n_seen']}/{out[None][1]['n_total']} | "

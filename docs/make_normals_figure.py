@@ -48,6 +48,21 @@ def _run(seed: int, radius_mm: float):
             {"seen": rep["n_seen"], "total": rep["n_total"], "median_bead_mm2": float(np.median(areas))})
 
 
+def draw_marked_view(ax, img, lab, s: float, ij: dict, rep: dict) -> None:
+    """Draw a shaded view (RGB, rows top = high j; pixel ``s`` mm) on ``ax`` in mm, the judge's bead regions ``lab``
+    (same rows) outlined in cyan and a cross at each marker's mapped place ``ij`` (pixels; NaN unmapped), green where
+    ``rep`` (:func:`marker_report`) has it seen, red where not."""
+    h, w = img.shape[:2]
+    ext = (-0.5 * s, (w - 0.5) * s, -0.5 * s, (h - 0.5) * s)
+    ax.imshow(img, extent=ext)
+    for k in np.unique(lab[lab > 0]):
+        ax.contour(lab == k, levels=[0.5], colors=["cyan"], linewidths=0.8, origin="upper", extent=ext)
+    for mid, p in ij.items():
+        if np.all(np.isfinite(p)):
+            ok = rep["markers"][mid]["seen"]
+            ax.plot(p[0] * s, p[1] * s, "+", color="lime" if ok else "red", ms=10, mew=1.5)
+
+
 def main(argv=None) -> int:
     """Write the before/after PNG and its table (markers seen, median bead area mm^2) into --out."""
     import matplotlib
@@ -72,14 +87,7 @@ def main(argv=None) -> int:
                 missed = [ij[m] for m, x in rep["markers"].items() if not x["seen"] and np.all(np.isfinite(ij[m]))]
                 centre = np.mean(missed, axis=0) * s if missed else np.array(img.shape[1::-1]) * s / 2
             ax = axes[r, c]
-            h, w = img.shape[:2]
-            ext = (-0.5 * s, (w - 0.5) * s, -0.5 * s, (h - 0.5) * s)      # image rows top = high j
-            ax.imshow(img, extent=ext)
-            for k in np.unique(lab[lab > 0]):                    # the judge's bead regions, outlined
-                ax.contour(lab == k, levels=[0.5], colors=["cyan"], linewidths=0.8, origin="upper", extent=ext)
-            for mid, p in ij.items():
-                ok = rep["markers"][mid]["seen"]
-                ax.plot(p[0] * s, p[1] * s, "+", color="lime" if ok else "red", ms=10, mew=1.5)
+            draw_marked_view(ax, img, lab, s, ij, rep)
             ax.set_xlim(centre[0] - HALF_MM, centre[0] + HALF_MM)
             ax.set_ylim(centre[1] - HALF_MM, centre[1] + HALF_MM)
             ax.set_title(f"seed {seed}: {'own normals' if radius == 0 else 'normals averaged over 2 mm'}; "
