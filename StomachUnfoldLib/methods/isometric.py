@@ -184,6 +184,13 @@ SIMILAR_GAIN = 0.5
 #: moved +0.022 against 0.02 allowed; see the benchmark notes).
 PUSH_FROM_MM2 = HOLE_MM2
 PUSH_STEPS = 60
+#: Rule 42 (docs/RULE42_small_folds_pushed.md): a fold of any size under PUSH_FROM_MM2 is pushed apart too, with
+#: SMALL_PUSH_STEPS (local/global steps; 0: off) and kept on the same test. Such a fold is no failure part, but it
+#: hides the mucosa on it: one to three of the judge's points, which is what put a random stomach, a phantom or a click
+#: run behind LSCM (9007: 24.4 mm^2 peeled, 99.975 against LSCM's 100 %). Twenty steps, not sixty: on tuning seeds 0-29
+#: and CT 01 development hybrids 40000-40019 they undid as many of these folds (40011's 12.7 mm^2 only with twenty) at
+#: a third of the cost (median time +0.7 s with sixty).
+SMALL_PUSH_STEPS = 0
 PUSH_SKIP = 8
 PUSH_WEIGHT = 10.0
 PUSH_NEAR_MM = 20.0
@@ -1928,16 +1935,16 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, near=None, candidates: i
 
 
 def push_apart(v: np.ndarray, f: np.ndarray, uv: np.ndarray, pairs=None, boundary_only=None,
-               boundary_weight: float = 0.0, similar=None, check=None, fold=None) -> np.ndarray:
-    """A flat map (V,2 mm) whose folded flaps are pushed off the map they lie on (see PUSH_FROM_MM2): ARAP steps
-    (its distance ``pairs``, straight boundary and as-similar ``similar`` region as for the map uv) with every
-    boundary vertex held at a target that moves it out of any triangle it lies inside. With ``fold`` (the peeled
-    triangles, vertex indices) only the boundary near them is tested (see PUSH_NEAR_MM). ``check()`` is called
-    between the steps (it raises to abandon the map)."""
+               boundary_weight: float = 0.0, similar=None, check=None, fold=None, steps: int = 0) -> np.ndarray:
+    """A flat map (V,2 mm) whose folded flaps are pushed off the map they lie on (see PUSH_FROM_MM2): ``steps`` ARAP
+    steps (PUSH_STEPS when 0; its distance ``pairs``, straight boundary and as-similar ``similar`` region as for the
+    map uv) with every boundary vertex held at a target that moves it out of any triangle it lies inside. With ``fold``
+    (the peeled triangles, vertex indices) only the boundary near them is tested (see PUSH_NEAR_MM). ``check()`` is
+    called between the steps (it raises to abandon the map)."""
     bv, reach = _boundary_reach(f, PUSH_SKIP)
     targets = _push_targets(f, bv, reach, near=_push_region(f, uv, fold))
     tick = None if check is None else (lambda fraction: check())  # noqa: E731
-    out, _ = arap(v, f, uv, max_iter=PUSH_STEPS, tol=0.0, progress=tick, injective=False, pairs=pairs,
+    out, _ = arap(v, f, uv, max_iter=int(steps) or PUSH_STEPS, tol=0.0, progress=tick, injective=False, pairs=pairs,
                   boundary_weight=boundary_weight, boundary_only=boundary_only, similar=similar,
                   scale_range=SIMILAR_SCALE, pull=(bv, PUSH_WEIGHT, targets))
     return out
@@ -1956,28 +1963,32 @@ def _push_region(f: np.ndarray, uv: np.ndarray, fold):
 
 def _pushed(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> tuple:
     """``current`` = (uv mm, kept and fold triangles, fold area mm^2, info) pushed apart (:func:`_push_retry`) when it
-    peels a fold over PUSH_FROM_MM2, with the boundary it was made with (``bonly`` at BOUNDARY_WEIGHT, else ``b2``)
-    and its as-similar region (taken out of info); else as it is."""
+    peels a fold over PUSH_FROM_MM2 (any fold, with SMALL_PUSH_STEPS steps, under rule 42), with the boundary it was
+    made with (``bonly`` at BOUNDARY_WEIGHT, else ``b2``) and its as-similar region (taken out of info); else as it
+    is."""
     info = current[4]
     similar = info.pop("_similar", None)
-    if current[3] <= PUSH_FROM_MM2:
+    small = SMALL_PUSH_STEPS > 0 and 0.0 < current[3] <= PUSH_FROM_MM2
+    if current[3] <= PUSH_FROM_MM2 and not small:
         return current
     used_b = bonly if info["boundary_weight"] == BOUNDARY_WEIGHT else b2
-    return _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check)
+    return _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check,
+                       steps=SMALL_PUSH_STEPS if small else PUSH_STEPS)
 
 
-def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None) -> tuple:
-    """The flat map with its folds pushed apart (:func:`push_apart`); ``current`` = (uv mm, kept and fold triangles,
-    fold area mm^2, info) of the map so far, returned as it is or replaced by the pushed map's when that hides less
-    in its folds and largest hole together (see PUSH_FROM_MM2)."""
+def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None,
+                steps: int = PUSH_STEPS) -> tuple:
+    """The flat map with its folds pushed apart (:func:`push_apart`, ``steps`` steps); ``current`` = (uv mm, kept and
+    fold triangles, fold area mm^2, info) of the map so far, returned as it is or replaced by the pushed map's when
+    that hides less in its folds and largest hole together (see PUSH_FROM_MM2)."""
     uv, f_keep, f_fold, fold_mm2, info = current
     t0 = time.perf_counter()
-    pushed = push_apart(cut.v, cut.f, uv, pairs, bonly, weight, similar, check, fold=f_fold)
+    pushed = push_apart(cut.v, cut.f, uv, pairs, bonly, weight, similar, check, fold=f_fold, steps=steps)
     info2: dict = {}
     u2, f_keep2, f_fold2 = settle_flat_map(cut, (pushed,), s, info2)
     fold2 = _area_mm2(cut.v, f_fold2)
     trace = {"push_mm2": [fold_mm2, fold2], "push_defect_mm2": [info["flat_defect_mm2"], info2["flat_defect_mm2"]],
-             "push_seconds": time.perf_counter() - t0}
+             "push_seconds": time.perf_counter() - t0, "push_steps": int(steps)}
     if fold2 + info2["flat_defect_mm2"] < fold_mm2 + info["flat_defect_mm2"]:
         return u2, f_keep2, f_fold2, fold2, dict(info, **info2, push_kept=True, **trace)
     return uv, f_keep, f_fold, fold_mm2, dict(info, push_kept=False, **trace)
