@@ -708,6 +708,32 @@ def test_the_push_looks_for_overlaps_only_near_the_folds(monkeypatch):
     assert np.array_equal(push_apart(v, f, uv, fold=far_side), push_apart(v, f, uv))
 
 
+def test_a_fold_under_a_failure_part_is_pushed_only_under_rule_42(monkeypatch):
+    # rule 42: a peeled fold at or under PUSH_FROM_MM2 is pushed too, with SMALL_PUSH_STEPS steps; off (0) it is left
+    from types import SimpleNamespace
+
+    import StomachUnfoldLib.methods.isometric as iso
+
+    v, f, uv0 = _ruffled_disc()
+    uv, _ = arap(v, f, uv0, injective=False)
+    cut = SimpleNamespace(v=v, f=f)
+    info0: dict = {}
+    u, f_keep, f_fold = iso.settle_flat_map(cut, (uv,), 0.5, info0)
+    fold = iso._area_mm2(v, f_fold)
+    assert fold > 0
+    monkeypatch.setattr(iso, "PUSH_FROM_MM2", fold + 1.0)          # this fold is a small one
+    current = lambda: (u, f_keep, f_fold, fold, dict(info0, boundary_weight=iso.BOUNDARY_WEIGHT))  # noqa: E731
+    monkeypatch.setattr(iso, "SMALL_PUSH_STEPS", 0)
+    left = iso._pushed(cut, current(), None, None, None, 0.5)
+    assert left[3] == fold and "push_mm2" not in left[4]             # off: left peeled, as before the rule
+    monkeypatch.setattr(iso, "SMALL_PUSH_STEPS", 20)
+    got = iso._pushed(cut, current(), None, None, None, 0.5)
+    assert got[4]["push_steps"] == 20 and got[4]["push_mm2"][0] == fold
+    assert got[4]["push_kept"] and got[3] + got[4]["flat_defect_mm2"] < fold + info0["flat_defect_mm2"]
+    monkeypatch.setattr(iso, "PUSH_FROM_MM2", 0.5 * fold)           # a large one: the full push, as before
+    assert iso._pushed(cut, current(), None, None, None, 0.5)[4]["push_steps"] == iso.PUSH_STEPS
+
+
 def test_the_strain_limit_relieves_a_stretched_boundary_and_leaves_the_rest():
     # a flat 2 mm grid in 3D, its exact flat map, one boundary vertex pulled 2.4 mm outwards: its triangles 2.2x
     nu = nv = 15
