@@ -192,8 +192,8 @@ PUSH_STEPS = 60
 #: a third of the cost (median time +0.7 s with sixty). At 20 it passed its decision sets, and the rerun of every
 #: isometric bench row closed 3 of the 32 rows behind LSCM with none new; but the push moves the map round the fold:
 #: held-out 8021 (two beads under fluid drawn joined) and two click runs of 1025 lost two markers each, net 3 fewer
-#: over the bench, and CT 03 hybrid 40010 fell from excellent to good (a hole of the view grown past 25 mm^2; the flat map
-#: has none). Off: three rows of 1-2 judge points are not worth a grade and three markers.
+#: over the bench, and CT 03 hybrid 40010 fell from excellent to good (a hole of the view grown past 25 mm^2; the
+#: flat map has none). Off: three rows of 1-2 judge points are not worth a grade and three markers.
 SMALL_PUSH_STEPS = 0
 PUSH_SKIP = 8
 PUSH_WEIGHT = 10.0
