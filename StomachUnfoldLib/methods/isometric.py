@@ -1980,8 +1980,8 @@ def _pushed(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> tupl
                        steps=SMALL_PUSH_STEPS if small else PUSH_STEPS)
 
 
-def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None,
-                steps: int = PUSH_STEPS) -> tuple:
+def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None, *,
+                steps: int) -> tuple:
     """The flat map with its folds pushed apart (:func:`push_apart`, ``steps`` steps); ``current`` = (uv mm, kept and
     fold triangles, fold area mm^2, info) of the map so far, returned as it is or replaced by the pushed map's when
     that hides less in its folds and largest hole together (see PUSH_FROM_MM2)."""
