@@ -195,6 +195,14 @@ PUSH_STEPS = 60
 #: over the bench, and CT 03 hybrid 40010 fell from excellent to good (a hole of the view grown past 25 mm^2; the
 #: flat map has none). Off: three rows of 1-2 judge points are not worth a grade and three markers.
 SMALL_PUSH_STEPS = 0
+#: Rule 43 (docs/RULE43_small_push_held.md): under rule 42, the small fold's push holds the map where it was beyond
+#: PUSH_NEAR_MM of the fold: every vertex that no triangle within that reach (in the plane) has is pulled to its place
+#: with weight HOLD_WEIGHT (a hundred times PUSH_WEIGHT: held, not fixed) while the whole map is solved with all its
+#: terms, so the landmark pairs reaching out of the region still hold the region's lengths. The rest of the view
+#: stays where it was; rule 42 moved the whole map round the fold, and lost markers and a grade far from it. False:
+#: rule 42's push as it was.
+SMALL_PUSH_HOLD = False
+HOLD_WEIGHT = 1000.0
 PUSH_SKIP = 8
 PUSH_WEIGHT = 10.0
 PUSH_NEAR_MM = 20.0
@@ -512,18 +520,22 @@ def _arap_factor(factors: dict | None, f: np.ndarray, w: np.ndarray, nv: int, bo
     from scipy.sparse import coo_matrix
 
     pv = np.asarray(pull[0], np.int64)
-    D = coo_matrix((np.full(len(pv), float(pull[1])), (pv, pv)), shape=(nv, nv))
+    D = coo_matrix((np.full(len(pv), 1.0) * np.asarray(pull[1], float), (pv, pv)), shape=(nv, nv))
     return _pinned_factor((_system_matrix(f, w, nv, boundary_weight, boundary_only, pairs) + D).tocsc(), f)
 
 
 def _add_pull(pull: tuple, uv: np.ndarray, b: np.ndarray) -> float:
-    """The proximal term ``pull`` = (vertices (B,), weight, targets) of an ARAP step: weight x sum |uv_i - t_i|^2
-    (mm^2) with ``targets(uv)`` giving the targets t (B,2 mm) of this step (see :func:`push_apart`); adds weight x t
-    to the right-hand side b (V,2) and returns the term's energy."""
+    """The proximal term ``pull`` = (vertices (B,), weight: one or (B,), targets) of an ARAP step: sum of weight x
+    |uv_i - t_i|^2 (mm^2) with ``targets(uv)`` giving the targets t (B,2 mm) of this step (see :func:`push_apart`);
+    adds weight x t to the right-hand side b (V,2) and returns the term's energy."""
     pv, p_w, p_target = pull
     t = p_target(uv)
-    np.add.at(b, pv, p_w * t)
-    return float(p_w * np.sum((uv[pv] - t) ** 2))
+    if np.ndim(p_w) == 0:
+        np.add.at(b, pv, p_w * t)
+        return float(p_w * np.sum((uv[pv] - t) ** 2))
+    w = np.asarray(p_w, float)[:, None]
+    np.add.at(b, pv, w * t)
+    return float(np.sum(w * (uv[pv] - t) ** 2))
 
 
 def _stored_factor(factors: dict | None, f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float,
@@ -1939,19 +1951,50 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, near=None, candidates: i
 
 
 def push_apart(v: np.ndarray, f: np.ndarray, uv: np.ndarray, pairs=None, boundary_only=None,
-               boundary_weight: float = 0.0, similar=None, check=None, fold=None, steps: int = 0) -> np.ndarray:
+               boundary_weight: float = 0.0, similar=None, check=None, fold=None, steps: int = 0,
+               hold: bool = False) -> np.ndarray:
     """A flat map (V,2 mm) whose folded flaps are pushed off the map they lie on (see PUSH_FROM_MM2): ``steps`` ARAP
     steps (PUSH_STEPS when 0; its distance ``pairs``, straight boundary and as-similar ``similar`` region as for the
     map uv) with every boundary vertex held at a target that moves it out of any triangle it lies inside. With ``fold``
-    (the peeled triangles, vertex indices) only the boundary near them is tested (see PUSH_NEAR_MM). ``check()`` is
-    called between the steps (it raises to abandon the map)."""
+    (the peeled triangles, vertex indices) only the boundary near them is tested (see PUSH_NEAR_MM); with ``hold`` too,
+    the map beyond that reach is held where it was (see SMALL_PUSH_HOLD). ``check()`` is called between the steps (it
+    raises to abandon the map)."""
     bv, reach = _boundary_reach(f, PUSH_SKIP)
-    targets = _push_targets(f, bv, reach, near=_push_region(f, uv, fold))
+    near = _push_region(f, uv, fold)
+    targets = _push_targets(f, bv, reach, near=near)
+    pull = (bv, PUSH_WEIGHT, targets)
+    if hold and near is not None:
+        pull = _held_beyond(f, uv, near, pull)
     tick = None if check is None else (lambda fraction: check())  # noqa: E731
     out, _ = arap(v, f, uv, max_iter=int(steps) or PUSH_STEPS, tol=0.0, progress=tick, injective=False, pairs=pairs,
                   boundary_weight=boundary_weight, boundary_only=boundary_only, similar=similar,
-                  scale_range=SIMILAR_SCALE, pull=(bv, PUSH_WEIGHT, targets))
+                  scale_range=SIMILAR_SCALE, pull=pull)
     return out
+
+
+def _held_beyond(f: np.ndarray, uv: np.ndarray, near: np.ndarray, pull: tuple) -> tuple:
+    """The push's ``pull`` = (boundary vertices (B,), weight, targets) with every vertex of the flat map uv (V,2 mm)
+    that no ``near`` triangle (bool (F,)) has added, held at its place with HOLD_WEIGHT (boundary vertices there too):
+    a pull (vertices, weights (P,), targets) for :func:`_add_pull`."""
+    bv, weight, targets = pull
+    inside = np.zeros(len(uv), bool)
+    inside[f[near].ravel()] = True
+    far_b = ~inside[bv]
+    far = np.flatnonzero(~inside)
+    far = far[~np.isin(far, bv)]
+    pv = np.r_[bv, far]
+    start = uv[pv]                                 # a copy (fancy indexing): the places the far map is held at
+    nb = len(bv)
+    weights = np.r_[np.where(far_b, HOLD_WEIGHT, weight), np.full(len(far), HOLD_WEIGHT)]
+
+    def held(u: np.ndarray) -> np.ndarray:
+        t = np.empty((len(pv), 2))
+        t[:nb] = targets(u)
+        t[:nb][far_b] = start[:nb][far_b]
+        t[nb:] = start[nb:]
+        return t
+
+    return pv, weights, held
 
 
 def _push_region(f: np.ndarray, uv: np.ndarray, fold):
@@ -1987,12 +2030,13 @@ def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, simi
     that hides less in its folds and largest hole together (see PUSH_FROM_MM2)."""
     uv, f_keep, f_fold, fold_mm2, info = current
     t0 = time.perf_counter()
-    pushed = push_apart(cut.v, cut.f, uv, pairs, bonly, weight, similar, check, fold=f_fold, steps=steps)
+    hold = SMALL_PUSH_HOLD and fold_mm2 <= PUSH_FROM_MM2          # a small fold (rule 42) only
+    pushed = push_apart(cut.v, cut.f, uv, pairs, bonly, weight, similar, check, fold=f_fold, steps=steps, hold=hold)
     info2: dict = {}
     u2, f_keep2, f_fold2 = settle_flat_map(cut, (pushed,), s, info2)
     fold2 = _area_mm2(cut.v, f_fold2)
     trace = {"push_mm2": [fold_mm2, fold2], "push_defect_mm2": [info["flat_defect_mm2"], info2["flat_defect_mm2"]],
-             "push_seconds": time.perf_counter() - t0, "push_steps": int(steps)}
+             "push_seconds": time.perf_counter() - t0, "push_steps": int(steps), "push_held": bool(hold)}
     if fold2 + info2["flat_defect_mm2"] < fold_mm2 + info["flat_defect_mm2"]:
         return u2, f_keep2, f_fold2, fold2, dict(info, **info2, push_kept=True, **trace)
     return uv, f_keep, f_fold, fold_mm2, dict(info, push_kept=False, **trace)
