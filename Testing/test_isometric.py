@@ -734,6 +734,43 @@ def test_a_fold_under_a_failure_part_is_pushed_only_under_rule_42(monkeypatch):
     assert iso._pushed(cut, current(), None, None, None, 0.5)[4]["push_steps"] == iso.PUSH_STEPS
 
 
+def test_under_rule_43_a_small_push_holds_the_map_beyond_the_fold(monkeypatch):
+    # rule 43: the small fold's push holds every vertex that no triangle within PUSH_NEAR_MM of the fold has
+    from types import SimpleNamespace
+
+    import StomachUnfoldLib.methods.isometric as iso
+    from StomachUnfoldLib.methods.isometric import overlapping_triangles, push_apart
+
+    monkeypatch.setattr(iso, "PUSH_NEAR_MM", 6.0)              # the disc is 40 mm across
+    v, f, uv0 = _ruffled_disc()
+    uv, _ = arap(v, f, uv0, injective=False)
+    over = overlapping_triangles(f, uv)
+    c = uv[f].mean(1)
+    near = np.linalg.norm(c[:, None] - c[over][None], axis=2).min(1) <= 6.0
+    beyond = np.setdiff1d(np.arange(len(v)), np.unique(f[near]))
+    assert len(beyond) > 0.3 * len(v)
+    free = push_apart(v, f, uv, fold=f[over])
+    held = push_apart(v, f, uv, fold=f[over], hold=True)
+    assert overlapping_triangles(f, held).sum() < 0.3 * over.sum()          # the lips are still pushed apart
+    moved = lambda x: np.linalg.norm(x[beyond] - uv[beyond], axis=1).max()  # noqa: E731
+    assert moved(held) < 0.1 < moved(free)                                  # the map beyond stays where it was
+    assert np.array_equal(push_apart(v, f, uv, hold=True), push_apart(v, f, uv))   # no fold named: nothing to hold
+    # through the retry: held only when SMALL_PUSH_HOLD is on and the fold is a small one
+    cut = SimpleNamespace(v=v, f=f)
+    info0: dict = {}
+    u, f_keep, f_fold = iso.settle_flat_map(cut, (uv,), 0.5, info0)
+    fold = iso._area_mm2(v, f_fold)
+    current = lambda: (u, f_keep, f_fold, fold, dict(info0, boundary_weight=iso.BOUNDARY_WEIGHT))  # noqa: E731
+    monkeypatch.setattr(iso, "SMALL_PUSH_STEPS", 20)
+    monkeypatch.setattr(iso, "PUSH_FROM_MM2", fold + 1.0)
+    assert not iso._pushed(cut, current(), None, None, None, 0.5)[4]["push_held"]
+    monkeypatch.setattr(iso, "SMALL_PUSH_HOLD", True)
+    got = iso._pushed(cut, current(), None, None, None, 0.5)
+    assert got[4]["push_held"] and got[4]["push_kept"]
+    monkeypatch.setattr(iso, "PUSH_FROM_MM2", 0.5 * fold)           # a large fold: the whole map pushed, as before
+    assert not iso._pushed(cut, current(), None, None, None, 0.5)[4]["push_held"]
+
+
 def test_the_strain_limit_relieves_a_stretched_boundary_and_leaves_the_rest():
     # a flat 2 mm grid in 3D, its exact flat map, one boundary vertex pulled 2.4 mm outwards: its triangles 2.2x
     nu = nv = 15
