@@ -7,6 +7,7 @@ charts, stability, resolution, scaling). Timings are measurements of this run on
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -18,6 +19,7 @@ import numpy as np
 from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
+from .raster_phase import phase_cases, phase_markdown
 from .memory import memory_markdown, memory_plot, memory_runs
 from .regional import area_scale_along, area_scale_summary
 
@@ -223,7 +225,8 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
                                  f"(confidence {row['auto_points']['confidence']:.2f})")
         wall = {} if family is not None else {"wall_thickness_mm": _wall(case["source"])}  # unseen: defaults
         params = {**wall, **case["params"], "method": case["method"]}
-        res = unfold(ct, cardia, pylorus, UnfoldParameters(**params), mask=mask)
+        with _raster_offset(case["source"].get("raster_offset_px", 0.0)):
+            res = unfold(ct, cardia, pylorus, UnfoldParameters(**params), mask=mask)
         rep = res.report
         q = dict(rep["quality"])
         if family is not None:
@@ -251,6 +254,19 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
     except Exception as e:  # a bug is data here too, with its traceback, so a sweep finishes
         row.update(ok=False, error=f"{type(e).__name__}: {e}", traceback=traceback.format_exc(limit=3))
     return row
+
+
+@contextlib.contextmanager
+def _raster_offset(offset_px: float):
+    """The surface methods' view raster moved ``offset_px`` pixels along i and j for the block (part ``phase``)."""
+    from StomachUnfoldLib import surface
+
+    old = surface.RASTER_OFFSET_PX
+    surface.RASTER_OFFSET_PX = float(offset_px)
+    try:
+        yield
+    finally:
+        surface.RASTER_OFFSET_PX = old
 
 
 def _run_case_in_worker(case: dict, png_dir: str | None = None) -> dict:
@@ -375,6 +391,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += mesh_size_cases(quick)
     if "clicks" in parts:
         cases += click_error_cases(quick, TUNE_SEEDS, HELD_OUT_SEEDS, _phantom_cache(None), Case)
+    if "phase" in parts:
+        cases += phase_cases(quick, data_dir, _real_cts(data_dir), _phantom_cache(None), Case)
     if "surfacebound" in parts:
         cases += surface_bound_cases(quick)
     if "surfacebound-fresh" in parts:
@@ -1154,6 +1172,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     L += family_markdown(rows)
     L += mesh_size_markdown(rows)
     L += click_error_markdown(rows, TUNE_SEEDS, HELD_OUT_SEEDS)
+    L += phase_markdown(rows)
     L += surface_bound_markdown(rows)
     L += memory_markdown(rows)
     for png in made:

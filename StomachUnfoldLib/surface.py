@@ -616,6 +616,12 @@ def orient_and_scale(uv: np.ndarray, cut: CutSurface, s: float, scale: bool = Tr
     return uv, flipped, float(area3)
 
 
+#: Where the view's raster lies on the flat map: its pixels' offset (pixels, along i and j) from the map's own corner.
+#: 0 in use; the benchmark's ``phase`` part moves it half a pixel to measure how much the judge's figures depend on
+#: where the pixel centres fall (StomachUnfoldEval/raster_phase.py).
+RASTER_OFFSET_PX = 0.0
+
+
 def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden_lps: np.ndarray | None = None):
     """Rasterise a flat map (uv mm) of a CutSurface and sample the CT along the normals into the unfolded Volume.
 
@@ -628,6 +634,8 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
     progress = progress or (lambda fraction: None)
     v, f, vn = cut.v, cut.f, cut.vn
     crop, lumen, s, w = prep.crop, prep.lumen, prep.pixel_mm, prep.params.wall_thickness_mm
+    if RASTER_OFFSET_PX:
+        uv = uv + float(RASTER_OFFSET_PX) * s   # the pixels laid elsewhere on the same map (the bench's `phase`)
     # --- rasterise and sample the CT along the normals -------------------------------------------------------
     ni = int(np.ceil(uv[:, 0].max() / s)) + 2
     nj = int(np.ceil(uv[:, 1].max() / s)) + 2

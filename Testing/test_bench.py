@@ -533,3 +533,49 @@ def test_the_bench_runs_only_the_methods_asked_for():
     assert bench._only_methods(cases, None) is cases
     with pytest.raises(InputError, match="unknown method isometrik"):
         bench._only_methods(cases, ["isometrik"])
+
+
+def test_the_phase_part_runs_each_volume_with_the_raster_where_it_is_and_moved_half_a_pixel(tmp_path):
+    from StomachUnfoldEval import raster_phase as rp
+    from StomachUnfoldLib import surface
+
+    cases = bench._cases(quick=True, full_size=False, data_dir=None, parts=("phase",))
+    assert {c["group"] for c in cases} == {rp.GROUP} and len({c["name"] for c in cases}) == len(cases)
+    assert {c["source"]["raster_offset_px"] for c in cases} == {0.0, rp.PHASE_OFFSET_PX}
+    assert len(cases) == 2 * 2 * len(rp.PHASE_METHODS) * 2      # no data folder: the two random sets, two volumes each
+    # one volume both ways through the bench's own run: the same map drawn on pixels laid elsewhere
+    src = {"random": 0, "size": "tiny", "_cache": str(tmp_path), "phase_set": "tiny"}
+    rows = [bench.run_case(bench.Case(f"stomach-0-tiny/isometric-phase-{o:g}", dict(src, raster_offset_px=o), {},
+                                      method="isometric", group=rp.GROUP)) for o in (0.0, rp.PHASE_OFFSET_PX)]
+    assert all(r["ok"] for r in rows), [r.get("error") for r in rows]
+    assert surface.RASTER_OFFSET_PX == 0.0                         # put back after the run
+    q0, q1 = rows[0]["quality"], rows[1]["quality"]
+    assert q0["distortion_map"] != q1["distortion_map"] or q0["visible_fraction"] != q1["visible_fraction"]
+    assert q0["markers"]["pairwise_distance_distortion"] == pytest.approx(q1["markers"]["pairwise_distance_distortion"], abs=0.01)
+    summ = rp.phase_summary(rows)
+    assert len(summ) == 1 and summ[0]["volumes"] == 1 and summ[0]["method"] == "isometric"
+
+
+def test_the_phase_table_counts_what_moved_with_the_raster():
+    from StomachUnfoldEval import raster_phase as rp
+
+    def row(vol, method, off, vis, seen, grade="excellent"):
+        return {"name": f"{vol}/{method}-phase-{off:g}", "method": method, "group": rp.GROUP, "ok": True,
+                "source": {"raster_offset_px": off, "phase_set": "tiny"}, "markers_seen": seen,
+                "quality": {"grade": grade, "visible_fraction": vis}}
+    h = rp.PHASE_OFFSET_PX
+    rows = [row("a", "isometric", 0.0, 0.9990, 10), row("a", "isometric", h, 0.9975, 9),          # -0.15 point
+            row("b", "isometric", 0.0, 1.0000, 10), row("b", "isometric", h, 1.0000, 10, "good"),
+            row("c", "isometric", 0.0, 0.9980, 8),                                             # one offset only
+            row("a", "lscm", 0.0, 0.9980, 7), row("a", "lscm", h, 0.9980, 7),
+            row("b", "lscm", 0.0, 1.0000, 6), row("b", "lscm", h, 1.0000, 6)]
+    summ = {e["method"]: e for e in rp.phase_summary(rows)}
+    iso = summ["isometric"]
+    assert iso["volumes"] == 2 and iso["visible_change_max"] == pytest.approx(0.15)
+    assert iso["visible_change_median"] == pytest.approx(0.075) and iso["visible_changed_over_0.1"] == 1
+    assert iso["markers"] == [20, 19] and iso["markers_volumes_changed"] == 1 and iso["grades_changed"] == ["b"]
+    assert iso["behind_lscm_flips"] == ["a"]                    # ahead of LSCM's 99.80 at 0, behind at half a pixel
+    assert "behind_lscm_flips" not in summ["lscm"] and summ["lscm"]["visible_change_max"] == 0.0
+    md = "\n".join(rp.phase_markdown(rows))
+    assert "| tiny | isometric | 2 | 0.075 / 0.150 | 1 | 20 -> 19 | 1 | b | a |" in md
+    assert rp.phase_markdown([]) == []
