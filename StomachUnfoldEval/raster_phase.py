@@ -120,4 +120,4 @@ def phase_markdown(rows: list[dict]) -> list[str]:
                  f"{e['visible_change_max']:.3f} | {e['visible_changed_over_0.1']} | {e['markers'][0]} -> "
                  f"{e['markers'][1]} | {e['markers_volumes_changed']} | {', '.join(e['grades_changed']) or 'none'} | "
                  f"{'-' if flips is None else (', '.join(flips) or 'none')} |")
-    return L
+    return L + [""]
