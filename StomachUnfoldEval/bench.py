@@ -19,8 +19,8 @@ import numpy as np
 from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
-from .raster_phase import phase_cases, phase_markdown
 from .memory import memory_markdown, memory_plot, memory_runs
+from .raster_phase import phase_cases, phase_markdown
 from .regional import area_scale_along, area_scale_summary
 
 __all__ = ["Case", "phantom_set", "run_case", "run_cases", "run_benchmark", "replot", "place_labels", "KAPPAS"]
