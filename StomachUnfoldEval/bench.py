@@ -144,6 +144,10 @@ def _cached(source: dict, cache_dir: str | None):
     return ct, truth
 
 
+#: Keys of a case's source that say how to run it, not which volume: the raster's offset and the set (part ``phase``).
+RUN_KEYS = ("raster_offset_px", "phase_set")
+
+
 def _load(source: dict):
     """CT Volume, cardia/pylorus (LPS), optional mask and marker truth for a case's source."""
     if "random" in source or "hybrid" in source:
@@ -170,7 +174,8 @@ def _load(source: dict):
         return (ct, *_long_axis_ends(ct.voxel_lps(_gas_pocket(ct, source["pocket_lps"]))), None, None)
     from .phantom import make_phantom
 
-    kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in source.items() if not k.startswith("_")}
+    kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in source.items()
+          if not k.startswith("_") and k not in RUN_KEYS}
     ct, truth = make_phantom(**kw)
     markers = {m["id"]: m["lps"] for m in truth["markers"]}
     return ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]), None, markers

@@ -555,6 +555,9 @@ def test_the_phase_part_runs_each_volume_with_the_raster_where_it_is_and_moved_h
     assert d0 == pytest.approx(d1, abs=0.01)                       # the map is the same: lengths read alike
     summ = rp.phase_summary(rows)
     assert len(summ) == 1 and summ[0]["volumes"] == 1 and summ[0]["method"] == "isometric"
+    # a named phantom's source takes the offset too (its keys are the phantom's arguments otherwise)
+    ct, *_ = bench._load({"shape": "j", "size": "tiny", "raster_offset_px": 0.5, "phase_set": "x"})
+    assert ct.size[0] > 0
 
 
 def test_the_phase_table_counts_what_moved_with_the_raster():
