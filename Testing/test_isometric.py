@@ -708,8 +708,9 @@ def test_the_push_looks_for_overlaps_only_near_the_folds(monkeypatch):
     assert np.array_equal(push_apart(v, f, uv, fold=far_side), push_apart(v, f, uv))
 
 
-def test_a_fold_under_a_failure_part_is_pushed_only_under_rule_42(monkeypatch):
-    # rule 42: a peeled fold at or under PUSH_FROM_MM2 is pushed too, with SMALL_PUSH_STEPS steps; off (0) it is left
+def _peeled_disc_map():
+    """The ruffled disc's ARAP map settled (folds peeled) at a 0.5 mm pixel: (cut, a callable giving the retries'
+    ``current`` tuple afresh, the peeled fold's area mm^2, the settle info)."""
     from types import SimpleNamespace
 
     import StomachUnfoldLib.methods.isometric as iso
@@ -720,9 +721,16 @@ def test_a_fold_under_a_failure_part_is_pushed_only_under_rule_42(monkeypatch):
     info0: dict = {}
     u, f_keep, f_fold = iso.settle_flat_map(cut, (uv,), 0.5, info0)
     fold = iso._area_mm2(v, f_fold)
+    return cut, lambda: (u, f_keep, f_fold, fold, dict(info0, boundary_weight=iso.BOUNDARY_WEIGHT)), fold, info0
+
+
+def test_a_fold_under_a_failure_part_is_pushed_only_under_rule_42(monkeypatch):
+    # rule 42: a peeled fold at or under PUSH_FROM_MM2 is pushed too, with SMALL_PUSH_STEPS steps; off (0) it is left
+    import StomachUnfoldLib.methods.isometric as iso
+
+    cut, current, fold, info0 = _peeled_disc_map()
     assert fold > 0
     monkeypatch.setattr(iso, "PUSH_FROM_MM2", fold + 1.0)          # this fold is a small one
-    current = lambda: (u, f_keep, f_fold, fold, dict(info0, boundary_weight=iso.BOUNDARY_WEIGHT))  # noqa: E731
     monkeypatch.setattr(iso, "SMALL_PUSH_STEPS", 0)
     left = iso._pushed(cut, current(), None, None, None, 0.5)
     assert left[3] == fold and "push_mm2" not in left[4]             # off: left peeled, as before the rule
@@ -736,8 +744,6 @@ def test_a_fold_under_a_failure_part_is_pushed_only_under_rule_42(monkeypatch):
 
 def test_under_rule_43_a_small_push_holds_the_map_beyond_the_fold(monkeypatch):
     # rule 43: the small fold's push holds every vertex that no triangle within PUSH_NEAR_MM of the fold has
-    from types import SimpleNamespace
-
     import StomachUnfoldLib.methods.isometric as iso
     from StomachUnfoldLib.methods.isometric import overlapping_triangles, push_apart
 
@@ -756,11 +762,7 @@ def test_under_rule_43_a_small_push_holds_the_map_beyond_the_fold(monkeypatch):
     assert moved(held) < 0.1 < moved(free)                                  # the map beyond stays where it was
     assert np.array_equal(push_apart(v, f, uv, hold=True), push_apart(v, f, uv))   # no fold named: nothing to hold
     # through the retry: held only when SMALL_PUSH_HOLD is on and the fold is a small one
-    cut = SimpleNamespace(v=v, f=f)
-    info0: dict = {}
-    u, f_keep, f_fold = iso.settle_flat_map(cut, (uv,), 0.5, info0)
-    fold = iso._area_mm2(v, f_fold)
-    current = lambda: (u, f_keep, f_fold, fold, dict(info0, boundary_weight=iso.BOUNDARY_WEIGHT))  # noqa: E731
+    cut, current, fold, _ = _peeled_disc_map()
     monkeypatch.setattr(iso, "SMALL_PUSH_STEPS", 20)
     monkeypatch.setattr(iso, "PUSH_FROM_MM2", fold + 1.0)
     assert not iso._pushed(cut, current(), None, None, None, 0.5)[4]["push_held"]

@@ -2022,17 +2022,17 @@ def _pushed(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> tupl
         return current
     used_b = bonly if info["boundary_weight"] == BOUNDARY_WEIGHT else b2
     return _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check,
-                       steps=SMALL_PUSH_STEPS if small else PUSH_STEPS)
+                       steps=SMALL_PUSH_STEPS if small else PUSH_STEPS, hold=small and SMALL_PUSH_HOLD)
 
 
 def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None, *,
-                steps: int) -> tuple:
-    """The flat map with its folds pushed apart (:func:`push_apart`, ``steps`` steps); ``current`` = (uv mm, kept and
-    fold triangles, fold area mm^2, info) of the map so far, returned as it is or replaced by the pushed map's when
-    that hides less in its folds and largest hole together (see PUSH_FROM_MM2)."""
+                steps: int, hold: bool = False) -> tuple:
+    """The flat map with its folds pushed apart (:func:`push_apart`, ``steps`` steps, the map beyond the folds held
+    with ``hold``); ``current`` = (uv mm, kept and fold triangles, fold area mm^2, info) of the map so far, returned as
+    it is or replaced by the pushed map's when that hides less in its folds and largest hole together (see
+    PUSH_FROM_MM2)."""
     uv, f_keep, f_fold, fold_mm2, info = current
     t0 = time.perf_counter()
-    hold = SMALL_PUSH_HOLD and fold_mm2 <= PUSH_FROM_MM2          # a small fold (rule 42) only
     pushed = push_apart(cut.v, cut.f, uv, pairs, bonly, weight, similar, check, fold=f_fold, steps=steps, hold=hold)
     info2: dict = {}
     u2, f_keep2, f_fold2 = settle_flat_map(cut, (pushed,), s, info2)
