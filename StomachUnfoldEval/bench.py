@@ -144,8 +144,9 @@ def _cached(source: dict, cache_dir: str | None):
     return ct, truth
 
 
-#: Keys of a case's source that say how to run it, not which volume: the raster's offset and the set (part ``phase``).
-RUN_KEYS = ("raster_offset_px", "phase_set")
+#: Keys of a case's source that say how to run it, not which volume: the raster's and the depth samples' offsets and
+#: the set (part ``phase``).
+RUN_KEYS = ("raster_offset_px", "depth_offset_px", "phase_set")
 
 
 def _load(source: dict):
@@ -230,7 +231,7 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
                                  f"(confidence {row['auto_points']['confidence']:.2f})")
         wall = {} if family is not None else {"wall_thickness_mm": _wall(case["source"])}  # unseen: defaults
         params = {**wall, **case["params"], "method": case["method"]}
-        with _raster_offset(case["source"].get("raster_offset_px", 0.0)):
+        with _raster_offset(case["source"].get("raster_offset_px", 0.0), case["source"].get("depth_offset_px", 0.0)):
             res = unfold(ct, cardia, pylorus, UnfoldParameters(**params), mask=mask)
         rep = res.report
         q = dict(rep["quality"])
@@ -262,16 +263,17 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
 
 
 @contextlib.contextmanager
-def _raster_offset(offset_px: float):
-    """The surface methods' view raster moved ``offset_px`` pixels along i and j for the block (part ``phase``)."""
+def _raster_offset(offset_px: float, depth_px: float = 0.0):
+    """The surface methods' view raster moved ``offset_px`` pixels along i and j, and its depth samples ``depth_px``
+    voxels toward the lumen, for the block (part ``phase``)."""
     from StomachUnfoldLib import surface
 
-    old = surface.RASTER_OFFSET_PX
-    surface.RASTER_OFFSET_PX = float(offset_px)
+    old = surface.RASTER_OFFSET_PX, surface.DEPTH_OFFSET_PX
+    surface.RASTER_OFFSET_PX, surface.DEPTH_OFFSET_PX = float(offset_px), float(depth_px)
     try:
         yield
     finally:
-        surface.RASTER_OFFSET_PX = old
+        surface.RASTER_OFFSET_PX, surface.DEPTH_OFFSET_PX = old
 
 
 def _run_case_in_worker(case: dict, png_dir: str | None = None) -> dict:

@@ -620,6 +620,10 @@ def orient_and_scale(uv: np.ndarray, cut: CutSurface, s: float, scale: bool = Tr
 #: 0 in use; the benchmark's ``phase`` part moves it half a pixel to measure how much the judge's figures depend on
 #: where the pixel centres fall (StomachUnfoldEval/raster_phase.py).
 RASTER_OFFSET_PX = 0.0
+#: Where the view's depth samples lie along the rays: their offset (voxels, toward the lumen) from the surface the map
+#: was made of. 0 in use (the surface at a sample, slice ``k0``); the ``phase`` part moves it half a voxel to measure
+#: how much the judge's figures depend on where the samples fall in depth.
+DEPTH_OFFSET_PX = 0.0
 
 
 def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden_lps: np.ndarray | None = None):
@@ -646,6 +650,9 @@ def sample_flat_map(prep, cut: CutSurface, uv: np.ndarray, progress=None, hidden
     lift = getattr(cut, "lift", None)
     lift = None if lift is None or not np.any(lift > 0) else np.asarray(lift, float)
     depths, k0, nk = depth_axis(s, w, 0.0 if lift is None else float(lift.max()))
+    if DEPTH_OFFSET_PX:
+        depths = depths - float(DEPTH_OFFSET_PX) * s  # the samples moved toward the lumen (the bench's `phase`)
+        k0 = k0 - float(DEPTH_OFFSET_PX)              # depth 0 then lies between samples: a fractional slice
     tt = tri[covered]
     bb = bary[covered]
     surf = np.einsum("nc,ncx->nx", bb, v[f[tt]])

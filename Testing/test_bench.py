@@ -535,39 +535,69 @@ def test_the_bench_runs_only_the_methods_asked_for():
         bench._only_methods(cases, ["isometrik"])
 
 
-def test_the_phase_part_runs_each_volume_with_the_raster_where_it_is_and_moved_half_a_pixel(tmp_path):
+def test_the_phase_part_runs_each_volume_with_the_raster_and_the_depth_samples_where_they_are_and_moved(tmp_path):
     from StomachUnfoldEval import raster_phase as rp
     from StomachUnfoldLib import surface
 
     cases = bench._cases(quick=True, full_size=False, data_dir=None, parts=("phase",))
     assert {c["group"] for c in cases} == {rp.GROUP} and len({c["name"] for c in cases}) == len(cases)
-    assert {c["source"]["raster_offset_px"] for c in cases} == {0.0, rp.PHASE_OFFSET_PX}
-    assert len(cases) == 2 * 2 * len(rp.PHASE_METHODS) * 2      # no data folder: the two random sets, two volumes each
-    # one volume both ways through the bench's own run: the same map drawn on pixels laid elsewhere
+    assert {(c["source"]["raster_offset_px"], c["source"]["depth_offset_px"]) for c in cases} == set(rp.PHASES)
+    assert len(cases) == 2 * 2 * len(rp.PHASE_METHODS) * 4      # no data folder: the two random sets, two volumes each
+    # one volume three ways through the bench's own run: the same map drawn on pixels and depths laid elsewhere
     src = {"random": 0, "size": "tiny", "_cache": str(tmp_path), "phase_set": "tiny"}
-    rows = [bench.run_case(bench.Case(f"stomach-0-tiny/isometric-phase-{o:g}", dict(src, raster_offset_px=o), {},
-                                      method="isometric", group=rp.GROUP)) for o in (0.0, rp.PHASE_OFFSET_PX)]
+    rows = [bench.run_case(bench.Case(f"stomach-0-tiny/isometric-phase-{o:g}-depth-{d:g}",
+                                      dict(src, raster_offset_px=o, depth_offset_px=d), {},
+                                      method="isometric", group=rp.GROUP)) for o, d in rp.PHASES[:3]]
     assert all(r["ok"] for r in rows), [r.get("error") for r in rows]
-    assert surface.RASTER_OFFSET_PX == 0.0                         # put back after the run
-    q0, q1 = rows[0]["quality"], rows[1]["quality"]
+    assert surface.RASTER_OFFSET_PX == 0.0 and surface.DEPTH_OFFSET_PX == 0.0     # put back after the runs
+    q0, q1, q2 = (r["quality"] for r in rows)
     assert q0["distortion_map"] != q1["distortion_map"] or q0["visible_fraction"] != q1["visible_fraction"]
-    d0, d1 = (q["markers"]["pairwise_distance_distortion"] for q in (q0, q1))
-    assert d0 == pytest.approx(d1, abs=0.01)                       # the map is the same: lengths read alike
+    d0, d1, d2 = (q["markers"]["pairwise_distance_distortion"] for q in (q0, q1, q2))
+    assert d0 == pytest.approx(d1, abs=0.01) and d0 == pytest.approx(d2, abs=0.01)   # the map is the same
     summ = rp.phase_summary(rows)
-    assert len(summ) == 1 and summ[0]["volumes"] == 1 and summ[0]["method"] == "isometric"
-    # a named phantom's source takes the offset too (its keys are the phantom's arguments otherwise)
-    ct, *_ = bench._load({"shape": "j", "size": "tiny", "raster_offset_px": 0.5, "phase_set": "x"})
+    assert [(e["moved"], e["volumes"], e["method"]) for e in summ] == [("raster", 1, "isometric"),
+                                                                        ("depth", 1, "isometric")]
+    # a named phantom's source takes the offsets too (its keys are the phantom's arguments otherwise)
+    ct, *_ = bench._load({"shape": "j", "size": "tiny", "raster_offset_px": 0.5, "depth_offset_px": 0.5,
+                          "phase_set": "x"})
     assert ct.size[0] > 0
 
 
-def test_the_phase_table_counts_what_moved_with_the_raster():
+def test_the_depth_samples_moved_half_a_voxel_move_every_mapped_depth_and_not_the_map():
+    from StomachUnfoldEval.phantom import make_phantom
+    from StomachUnfoldLib import surface
+    from StomachUnfoldLib.pipeline import UnfoldParameters, unfold
+
+    ct, truth = make_phantom(shape="j", size="tiny")
+    pts = np.array([m["lps"] for m in truth["markers"]], float)
+    out = {}
+    for d in (0.0, 0.5):
+        surface.DEPTH_OFFSET_PX = d
+        try:
+            res = unfold(ct, truth["cardia_lps"], truth["pylorus_lps"], UnfoldParameters(method="lscm"))
+        finally:
+            surface.DEPTH_OFFSET_PX = 0.0
+        out[d] = res
+    s = float(out[0.0].unfolded.spacing[2])
+    m0, m1 = (out[d].correspondence.to_unfolded(pts) for d in (0.0, 0.5))
+    ok = np.all(np.isfinite(m0), 1) & np.all(np.isfinite(m1), 1)
+    assert ok.sum() >= len(pts) - 1
+    same_pixel = np.all(np.abs(m0[ok, :2] - m1[ok, :2]) < 1e-6, 1)
+    assert same_pixel.mean() > 0.8                                   # the flat map: the same places in (i, j)
+    assert np.allclose(m1[ok][same_pixel, 2] - m0[ok][same_pixel, 2], -0.5 * s, atol=1e-6)   # half a voxel deeper
+    a0, a1 = out[0.0].unfolded.array, out[0.5].unfolded.array
+    assert a0.shape == a1.shape and not np.array_equal(a0, a1)       # the view sampled at other depths
+    assert out[0.0].mesh.unfolded_lps[0, 2] - out[0.5].mesh.unfolded_lps[0, 2] == pytest.approx(0.5 * s)
+
+
+def test_the_phase_table_counts_what_moved_with_the_raster_and_the_depth_samples():
     from StomachUnfoldEval import raster_phase as rp
 
-    def row(vol, method, off, vis, seen, grade="excellent"):
-        return {"name": f"{vol}/{method}-phase-{off:g}", "method": method, "group": rp.GROUP, "ok": True,
-                "source": {"raster_offset_px": off, "phase_set": "tiny"}, "markers_seen": seen,
-                "quality": {"grade": grade, "visible_fraction": vis}}
-    h = rp.PHASE_OFFSET_PX
+    def row(vol, method, off, vis, seen, grade="excellent", dep=None):
+        src = {"raster_offset_px": off, "phase_set": "tiny", **({} if dep is None else {"depth_offset_px": dep})}
+        return {"name": f"{vol}/{method}-phase-{off:g}-depth-{dep or 0:g}", "method": method, "group": rp.GROUP,
+                "ok": True, "source": src, "markers_seen": seen, "quality": {"grade": grade, "visible_fraction": vis}}
+    h, dd = rp.PHASE_OFFSET_PX, rp.DEPTH_OFFSET_PX
     rows = [row("a", "isometric", 0.0, 0.9990, 10), row("a", "isometric", h, 0.9975, 9),          # -0.15 point
             row("b", "isometric", 0.0, 1.0000, 10), row("b", "isometric", h, 1.0000, 10, "good"),
             row("c", "isometric", 0.0, 0.9980, 8),                                             # one offset only
@@ -575,11 +605,27 @@ def test_the_phase_table_counts_what_moved_with_the_raster():
             row("b", "lscm", 0.0, 1.0000, 6), row("b", "lscm", h, 1.0000, 6)]
     summ = {e["method"]: e for e in rp.phase_summary(rows)}
     iso = summ["isometric"]
-    assert iso["volumes"] == 2 and iso["visible_change_max"] == pytest.approx(0.15)
+    assert iso["moved"] == "raster" and iso["volumes"] == 2 and iso["visible_change_max"] == pytest.approx(0.15)
     assert iso["visible_change_median"] == pytest.approx(0.075) and iso["visible_changed_over_0.1"] == 1
     assert iso["markers"] == [20, 19] and iso["markers_volumes_changed"] == 1 and iso["grades_changed"] == ["b"]
     assert iso["behind_lscm_flips"] == ["a"]                    # ahead of LSCM's 99.80 at 0, behind at half a pixel
     assert "behind_lscm_flips" not in summ["lscm"] and summ["lscm"]["visible_change_max"] == 0.0
     md = "\n".join(rp.phase_markdown(rows))
-    assert "| tiny | isometric | 2 | 0.075 / 0.150 | 1 | 20 -> 19 | 1 | b | a |" in md
+    assert "| tiny | isometric | raster | 2 | 0.075 / 0.150 | 1 | 20 -> 19 | 1 | b | a |" in md
+    assert "at all four phases" not in md                      # no volume ran at all four
     assert rp.phase_markdown([]) == []
+    # the depth runs, and the volumes behind LSCM at every phase
+    rows += [row("a", "isometric", 0.0, 0.9970, 10, dep=dd), row("a", "isometric", h, 0.9975, 10, dep=dd),
+             row("a", "lscm", 0.0, 0.9980, 7, dep=dd), row("a", "lscm", h, 0.9985, 7, dep=dd),
+             row("b", "isometric", 0.0, 0.9990, 10, dep=dd), row("b", "isometric", h, 1.0000, 10, dep=dd),
+             row("b", "lscm", 0.0, 1.0000, 6, dep=dd), row("b", "lscm", h, 1.0000, 6, dep=dd)]
+    by = {(e["method"], e["moved"]): e for e in rp.phase_summary(rows)}
+    assert set(by) == {(m, mv) for m in ("isometric", "lscm") for mv in ("raster", "depth", "both")}
+    assert by["isometric", "depth"]["visible_change_max"] == pytest.approx(0.2)
+    assert by["isometric", "depth"]["behind_lscm_flips"] == ["a", "b"]   # a: ahead at 0, behind here; b: tied -> behind
+    beh = rp.behind_summary(rows)
+    assert beh == [{"set": "tiny", "method": "isometric", "volumes": 2, "behind_every_phase": [],
+                    "behind_some_phases": ["a", "b"], "behind_none": 0}]
+    rows.append(row("c", "lscm", 0.0, 0.9990, 8))                # c still runs at one phase only: left out
+    assert rp.behind_summary(rows)[0]["volumes"] == 2
+    assert "| tiny | isometric | 2 | none | a, b | 0 |" in "\n".join(rp.phase_markdown(rows))
