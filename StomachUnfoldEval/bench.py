@@ -1389,9 +1389,28 @@ def _merge(old: dict, rows: list[dict], full: dict | None, meta: dict, parts) ->
     one name can be a row of several parts, e.g. ``bent-small/kappa=0.2`` of ``kappa`` and of ``sweep``)."""
     mine = {(r.get("group"), r["name"]): r for r in rows}
     run = {"date": meta["date"], "parts": list(parts), "cases": len(rows), "wall_seconds": meta["wall_seconds"],
+           **({"packages": meta["machine"]["packages"]} if meta.get("machine", {}).get("packages") else {}),
            **({"methods": meta["methods"]} if meta.get("methods") else {})}
     merged = [mine.pop((r.get("group"), r["name"]), r) for r in old["cases"]] + list(mine.values())
     return merged, full or old.get("full_size"), {**old["meta"], "merged": old["meta"].get("merged", []) + [run]}
+
+
+#: The packages whose versions a run's figures can depend on: the flat maps are solved in floating point, and a
+#: change in the last bits (another numpy, scipy or BLAS) can move a volume's figures as far as the judge's noise.
+RESULT_PACKAGES = ("numpy", "scipy", "SimpleITK", "vtk", "scikit-image", "dask")
+
+
+def package_versions() -> dict:
+    """{name: version} of RESULT_PACKAGES installed here (those missing left out), recorded with every run."""
+    from importlib import metadata
+
+    out = {}
+    for name in RESULT_PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
 
 
 def replot(out_dir: str = "docs/benchmark") -> list[str]:
@@ -1451,7 +1470,8 @@ def run_benchmark(out_dir: str = "docs/benchmark", quick: bool = False, full_siz
     full = full_size_runs(out_dir) if full_size else None
     if full_size or "memory" in parts:  # peak memory against crop size, each run alone (docs/benchmark/memory.png)
         rows += memory_runs()
-    meta = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+    meta = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
+                        "packages": package_versions()},
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "wall_seconds": time.perf_counter() - t0,
             "quick": quick, "scheduler": scheduler or "LocalCluster",
             **({"methods": list(methods)} if methods is not None else {})}

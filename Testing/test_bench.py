@@ -137,6 +137,11 @@ def test_merge_replaces_rows_by_name_and_keeps_the_rest():
                                     {"name": "k", "group": "kappa", "seconds": 4.0}], None, {"date": "now", "wall_seconds": 1.0},
                               ("kappa", "sweep"))
     assert [(r["group"], r["seconds"]) for r in rows] == [("kappa", 4.0), ("sweep", 5.0)]
+    # each merged run says which packages computed its rows (their last bits can move a volume's figures)
+    pk = bench.package_versions()
+    assert set(pk) >= {"numpy", "scipy", "SimpleITK", "vtk"} and all(isinstance(v, str) and v for v in pk.values())
+    _, _, meta = bench._merge(old, [], None, {"date": "now", "wall_seconds": 1.0, "machine": {"packages": pk}}, ("x",))
+    assert meta["merged"][-1]["packages"] == pk
 
 
 def test_family_cases_tune_and_held_out_seeds_every_method_on_each():
