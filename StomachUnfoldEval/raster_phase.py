@@ -1,4 +1,4 @@
-"""The ``phase`` part of ``stomach-unfold bench``: how much the judge's figures move when the view's raster does.
+"""The ``phase`` part of ``stomach-unfold bench``: how much the judge's figures move when the view's sampling does.
 
 A surface method draws its view on a raster of square pixels laid from the flat map's own corner, and samples each
 pixel's ray at depths counted from the surface the map was made of. Where the pixel centres fall on the map, and where
