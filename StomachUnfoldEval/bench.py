@@ -231,7 +231,7 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
                                  f"(confidence {row['auto_points']['confidence']:.2f})")
         wall = {} if family is not None else {"wall_thickness_mm": _wall(case["source"])}  # unseen: defaults
         params = {**wall, **case["params"], "method": case["method"]}
-        with _raster_offset(case["source"].get("raster_offset_px", 0.0), case["source"].get("depth_offset_px", 0.0)):
+        with _sampling_offsets(case["source"].get("raster_offset_px", 0.0), case["source"].get("depth_offset_px", 0.0)):
             res = unfold(ct, cardia, pylorus, UnfoldParameters(**params), mask=mask)
         rep = res.report
         q = dict(rep["quality"])
@@ -263,7 +263,7 @@ def run_case(case: dict, png_dir: str | None = None) -> dict:
 
 
 @contextlib.contextmanager
-def _raster_offset(offset_px: float, depth_px: float = 0.0):
+def _sampling_offsets(offset_px: float, depth_px: float = 0.0):
     """The surface methods' view raster moved ``offset_px`` pixels along i and j, and its depth samples ``depth_px``
     voxels toward the lumen, for the block (part ``phase``)."""
     from StomachUnfoldLib import surface
