@@ -773,6 +773,50 @@ def test_under_rule_43_a_small_push_holds_the_map_beyond_the_fold(monkeypatch):
     assert not iso._pushed(cut, current(), None, None, None, 0.5)[4]["push_held"]
 
 
+def test_under_rule_44_the_small_push_waits_beside_the_map(monkeypatch):
+    # rule 44: the small fold's pushed map is not kept on its own test; it travels beside the map as it was
+    import StomachUnfoldLib.methods.isometric as iso
+
+    cut, current, fold, _ = _peeled_disc_map()
+    monkeypatch.setattr(iso, "PUSH_FROM_MM2", fold + 1.0)          # this fold is a small one
+    monkeypatch.setattr(iso, "SMALL_PUSH_STEPS", 20)
+    monkeypatch.setattr(iso, "SMALL_PUSH_HOLD", True)
+    monkeypatch.setattr(iso, "SMALL_PUSH_BY_VIEW", True)
+    before = current()
+    got = iso._pushed(cut, current(), None, None, None, 0.5)
+    assert got[3] == fold and np.array_equal(got[0], before[0])     # the map as it was
+    assert not got[4]["push_kept"] and got[4]["push_held"] and got[4]["push_mm2"][0] == fold
+    pushed = got[4]["_small_push"]
+    assert pushed[4]["push_kept"] and pushed[3] < fold            # the pushed map, kept on the push's own test
+    monkeypatch.setattr(iso, "PUSH_FROM_MM2", 0.5 * fold)           # a large fold: pushed and kept as before
+    big = iso._pushed(cut, current(), None, None, None, 0.5)
+    assert big[4]["push_kept"] and "_small_push" not in big[4]
+
+
+def test_under_rule_44_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch):
+    # the tiny J's fold taken as a small one: both maps drawn, the one whose view shows more lumen-edge points kept
+    import StomachUnfoldLib.methods.isometric as iso
+    from StomachUnfoldLib.quality import mucosa_points, visible_points
+    from StomachUnfoldLib.view import first_hit
+
+    for name, value in (("PUSH_FROM_MM2", 1e9), ("SMALL_PUSH_STEPS", 20), ("SMALL_PUSH_HOLD", True),
+                        ("SMALL_PUSH_BY_VIEW", True), ("FLIP_DEGREES", ())):
+        monkeypatch.setattr(iso, name, value)
+    ct, truth = make_phantom("j", "tiny")
+    res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                 UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
+    m = res.report["method"]
+    before, after = m["push_mm2"]
+    assert before > 0 and m["push_held"] and m["small_push_points"] > 1000
+    shown_plain, shown_pushed = m["small_push_shown"]
+    assert m["small_push_kept"] == (shown_pushed > shown_plain)
+    assert m["hidden_fold_mm2"] == pytest.approx(after if m["small_push_kept"] else before)
+    # the count the method kept by is the kept view's own, on the same points
+    pts = mucosa_points(res.lumen_crop, res.centerline_lps, max_points=iso.VIEW_CHECK_POINTS, sample="hash")
+    seen = visible_points(res.unfolded, res.correspondence.to_unfolded(pts), first_hit(res.unfolded)[0]).sum()
+    assert seen == max(shown_plain, shown_pushed)
+
+
 def test_the_strain_limit_relieves_a_stretched_boundary_and_leaves_the_rest():
     # a flat 2 mm grid in 3D, its exact flat map, one boundary vertex pulled 2.4 mm outwards: its triangles 2.2x
     nu = nv = 15

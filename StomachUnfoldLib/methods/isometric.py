@@ -204,6 +204,13 @@ SMALL_PUSH_STEPS = 0
 #: 0.11 and 0.14 point of visible mucosa at the lip of the fold opened and the small set's distortion median rose
 #: 0.03730 -> 0.03738 (criteria 3 and 5).
 SMALL_PUSH_HOLD = False
+#: Rule 44 (docs/RULE44_small_push_shown.md): under rules 42 and 43, the small fold's pushed map is not kept on the
+#: push's own test alone: both maps are drawn, and the one whose view shows more of the lumen's wall is kept
+#: (:func:`_shown_more`, on VIEW_CHECK_POINTS points of the lumen's edge picked by position, not the grade's draw),
+#: the map as it was on a tie. Rule 43 lost visible mucosa at the lip of the fold it opened on two CT 03 hybrids;
+#: this asks the view. False: rule 43 as it was.
+SMALL_PUSH_BY_VIEW = False
+VIEW_CHECK_POINTS = 8000
 HOLD_WEIGHT = 1000.0
 PUSH_SKIP = 8
 PUSH_WEIGHT = 10.0
@@ -1758,35 +1765,91 @@ class IsometricFlattening(Method):
                         cut, (uv, f_keep, f_fold, fold_mm2, info) = plain, got
                 info.update(trace)
             t_init, pairs_n, t_pairs = info.pop("_start_seconds"), info.pop("_pairs"), info.pop("_pairs_seconds")
-            whole_mm2 = _area_mm2(cut.v, cut.f)
             info.update(geodesic_pairs=pairs_n, geodesic_seconds=t_pairs)
-            hidden = cut.v[np.unique(f_fold)] if len(f_fold) else None  # the peeled folds' mucosa: not on the view
-            info["hidden_folds"] = hidden_folds(cut.v, f_fold, f_keep)
-            info["hidden_fold_mm2"] = fold_mm2
-            info["hidden_fold_fraction"] = fold_mm2 / max(whole_mm2, 1e-9)  # of the whole cut-open wall
-            if info["peeled_triangles"] or info["peeled_overlap_triangles"]:
-                cut, uv = _with_faces(cut, f_keep, uv)
-            uv, info_st = limit_stretch(cut.v, cut.f, uv)
-            info.update(info_st)
-            uv, info["stretch_guard_scale"] = hold_within_limit(cut.v, cut.f, uv)
-            if info["stretch_guard_scale"] < 1.0:
-                warnings.append(f"the strain limit left a triangle over {STRETCH_LIMIT:g}x: the whole flat map was "
-                                f"scaled by {info['stretch_guard_scale']:.3f}, so lengths on the view read "
-                                f"{100 * (1 - info['stretch_guard_scale']):.1f} % short (see the distortion map)")
-            uv, flipped_frac = orient_rigid(uv, cut, prep.pixel_mm)
-            st = stretch_stats(cut.v, cut.f, uv)
-        sa = signed_area_2d(uv, cut.f)
-        info["flipped_final"] = int(np.sum(np.sign(sa) != (np.sign(np.sum(np.sign(sa))) or 1.0)))
-        if info["flipped_final"]:
-            warnings.append(f"the flat map has {info['flipped_final']} flipped triangles")
+            small = info.pop("_small_push", None)  # rule 44: the small fold pushed apart, kept if its view shows more
+            drawn = _finish(cut, (uv, f_keep, f_fold, fold_mm2, info), prep.pixel_mm)
         with timed_stage(progress, "volume", seconds, 0.6, 1.0) as report:
-            vol, fwd, inv, mesh, vinfo = sample_flat_map(prep, cut, uv, report, hidden_lps=hidden)
-            _place_folds(info["hidden_folds"], vol, fwd)
+            drawn = _drawn(prep, drawn, report)
+            if small is not None:
+                drawn = _shown_more(prep, drawn, _finish(cut, small, prep.pixel_mm))
+        warnings.extend(drawn.warnings)
+        cut, info, st, flipped_frac = drawn.cut, drawn.info, drawn.stretch, drawn.flipped_fraction
+        vol, fwd, inv, mesh, vinfo = drawn.view
         cut_len = float(np.linalg.norm(cut.v[cut.boundary_edges[:, 0]] - cut.v[cut.boundary_edges[:, 1]],
                                        axis=1).sum()) if len(cut.boundary_edges) else 0.0
         section = {"lumen_fluid_fraction": fluid, **cut.info, **vinfo, **info, **st, "boundary_length_mm": cut_len,
                    "flipped_triangle_fraction": flipped_frac, "start_map_seconds": t_init}
         return Unfolding(vol, MapCorrespondence(fwd, inv), mesh, section, warnings, seconds)
+
+
+@dataclass
+class _Drawn:
+    """A kept flat map on its way to the view: the cut surface (its peeled triangles dropped), the map (uv mm), its
+    report section, stretch figures, the fraction orient_rigid found flipped, the peeled folds' mucosa (LPS mm, or
+    None), its warnings, and once sampled, the view (volume, to_unfolded, to_original, mesh, sampling info)."""
+
+    cut: object
+    uv: np.ndarray
+    info: dict
+    stretch: dict
+    flipped_fraction: float
+    hidden: np.ndarray | None
+    warnings: list
+    view: tuple | None = None
+
+
+def _finish(cut, flat: tuple, s: float) -> _Drawn:
+    """The flat map ``flat`` = (uv mm, kept and fold triangles, fold area mm^2, info) made ready to draw: its peeled
+    triangles dropped, its strain limited and held within STRETCH_LIMIT, turned rigidly to the view's axes (pixel
+    ``s`` mm)."""
+    uv, f_keep, f_fold, fold_mm2, info = flat
+    info, warnings = dict(info), []
+    whole_mm2 = _area_mm2(cut.v, cut.f)
+    hidden = cut.v[np.unique(f_fold)] if len(f_fold) else None  # the peeled folds' mucosa: not on the view
+    info["hidden_folds"] = hidden_folds(cut.v, f_fold, f_keep)
+    info["hidden_fold_mm2"] = fold_mm2
+    info["hidden_fold_fraction"] = fold_mm2 / max(whole_mm2, 1e-9)  # of the whole cut-open wall
+    if info["peeled_triangles"] or info["peeled_overlap_triangles"]:
+        cut, uv = _with_faces(cut, f_keep, uv)
+    uv, info_st = limit_stretch(cut.v, cut.f, uv)
+    info.update(info_st)
+    uv, info["stretch_guard_scale"] = hold_within_limit(cut.v, cut.f, uv)
+    if info["stretch_guard_scale"] < 1.0:
+        warnings.append(f"the strain limit left a triangle over {STRETCH_LIMIT:g}x: the whole flat map was "
+                        f"scaled by {info['stretch_guard_scale']:.3f}, so lengths on the view read "
+                        f"{100 * (1 - info['stretch_guard_scale']):.1f} % short (see the distortion map)")
+    uv, flipped_frac = orient_rigid(uv, cut, s)
+    st = stretch_stats(cut.v, cut.f, uv)
+    sa = signed_area_2d(uv, cut.f)
+    info["flipped_final"] = int(np.sum(np.sign(sa) != (np.sign(np.sum(np.sign(sa))) or 1.0)))
+    if info["flipped_final"]:
+        warnings.append(f"the flat map has {info['flipped_final']} flipped triangles")
+    return _Drawn(cut, uv, info, st, flipped_frac, hidden, warnings)
+
+
+def _drawn(prep, d: _Drawn, report=None) -> _Drawn:
+    """``d`` with its view sampled from the CT along the rays (:func:`sample_flat_map`) and its folds placed on it."""
+    vol, fwd, inv, mesh, vinfo = sample_flat_map(prep, d.cut, d.uv, report, hidden_lps=d.hidden)
+    _place_folds(d.info["hidden_folds"], vol, fwd)
+    d.view = (vol, fwd, inv, mesh, vinfo)
+    return d
+
+
+def _shown_more(prep, drawn: _Drawn, pushed: _Drawn) -> _Drawn:
+    """Of the drawn map and its small fold pushed apart (drawn here), the one whose view shows more of the lumen's
+    wall (SMALL_PUSH_BY_VIEW): VIEW_CHECK_POINTS points of the lumen's edge (a sample by position, quality.mucosa_points)
+    each shown where the view's first tissue along its pixel lies at its depth (quality.visible_points, the grade's
+    own test); the drawn map on a tie."""
+    from ..quality import mucosa_points, visible_points
+    from ..view import first_hit
+
+    pts = mucosa_points(prep.lumen_crop, np.asarray(prep.centerline.points_lps), max_points=VIEW_CHECK_POINTS,
+                        sample="hash")
+    pushed = _drawn(prep, pushed)
+    shown = [int(visible_points(d.view[0], d.view[1](pts), first_hit(d.view[0])[0]).sum()) for d in (drawn, pushed)]
+    keep = pushed if shown[1] > shown[0] else drawn
+    keep.info.update(small_push_shown=shown, small_push_points=int(len(pts)), small_push_kept=keep is pushed)
+    return keep
 
 
 def _bridged(cut: IsoSurface) -> IsoSurface:
@@ -2021,8 +2084,13 @@ def _pushed(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> tupl
     if current[3] <= PUSH_FROM_MM2 and not small:
         return current
     used_b = bonly if info["boundary_weight"] == BOUNDARY_WEIGHT else b2
-    return _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check,
-                       steps=SMALL_PUSH_STEPS if small else PUSH_STEPS, hold=small and SMALL_PUSH_HOLD)
+    got = _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check,
+                      steps=SMALL_PUSH_STEPS if small else PUSH_STEPS, hold=small and SMALL_PUSH_HOLD)
+    if small and SMALL_PUSH_BY_VIEW and got[4]["push_kept"]:
+        # rule 44: the pushed map waits beside the map as it was; the method keeps the one whose view shows more
+        trace = {k: got[4][k] for k in ("push_mm2", "push_defect_mm2", "push_seconds", "push_steps", "push_held")}
+        return (*current[:4], dict(info, **trace, push_kept=False, _small_push=got))
+    return got
 
 
 def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None, *,
