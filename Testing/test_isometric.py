@@ -774,7 +774,7 @@ def test_under_rule_43_a_small_push_holds_the_map_beyond_the_fold(monkeypatch):
 
 
 def test_under_rule_44_the_small_push_waits_beside_the_map(monkeypatch):
-    # rule 44: the small fold's pushed map is not kept on its own test; it travels beside the map as it was
+    # rule 44: the small fold's push is not made in the flat map's chain; it waits, as a callable, beside the map
     import StomachUnfoldLib.methods.isometric as iso
 
     cut, current, fold, _ = _peeled_disc_map()
@@ -785,9 +785,12 @@ def test_under_rule_44_the_small_push_waits_beside_the_map(monkeypatch):
     before = current()
     got = iso._pushed(cut, current(), None, None, None, 0.5)
     assert got[3] == fold and np.array_equal(got[0], before[0])     # the map as it was
-    assert not got[4]["push_kept"] and got[4]["push_held"] and got[4]["push_mm2"][0] == fold
-    pushed = got[4]["_small_push"]
-    assert pushed[4]["push_kept"] and pushed[3] < fold            # the pushed map, kept on the push's own test
+    assert "push_mm2" not in got[4]                                  # no push made yet
+    pushed = got[4]["_small_push"]()
+    assert pushed[4]["push_kept"] and pushed[4]["push_held"] and pushed[3] < fold   # the held push, on its own test
+    monkeypatch.setattr(iso, "SMALL_PUSH_BY_VIEW", False)           # rule 43: the same push, made at once
+    assert np.array_equal(iso._pushed(cut, current(), None, None, None, 0.5)[0], pushed[0])
+    monkeypatch.setattr(iso, "SMALL_PUSH_BY_VIEW", True)
     monkeypatch.setattr(iso, "PUSH_FROM_MM2", 0.5 * fold)           # a large fold: pushed and kept as before
     big = iso._pushed(cut, current(), None, None, None, 0.5)
     assert big[4]["push_kept"] and "_small_push" not in big[4]
@@ -806,9 +809,10 @@ def test_under_rule_44_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch)
     res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
                  UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
     m = res.report["method"]
-    before, after = m["push_mm2"]
-    assert before > 0 and m["push_held"] and m["small_push_points"] > 1000
     shown_plain, shown_pushed = m["small_push_shown"]
+    assert m["small_push_points"] > 1000 and shown_plain < m["small_push_points"]   # the fold hides some of the wall
+    before, after = m["push_mm2"]                                   # so the push was made, held beyond the fold
+    assert before > 0 and m["push_held"] and shown_pushed is not None
     assert m["small_push_kept"] == (shown_pushed > shown_plain)
     assert m["hidden_fold_mm2"] == pytest.approx(after if m["small_push_kept"] else before)
     # the count the method kept by is the kept view's own, on the same points

@@ -1771,7 +1771,7 @@ class IsometricFlattening(Method):
         with timed_stage(progress, "volume", seconds, 0.6, 1.0) as report:
             drawn = _drawn(prep, drawn, report)
             if small is not None:
-                drawn = _shown_more(prep, drawn, _finish(cut, small, prep.pixel_mm))
+                drawn = _shown_more(prep, cut, drawn, small, check=(lambda: report(1.0)))
         warnings.extend(drawn.warnings)
         cut, info, st, flipped_frac = drawn.cut, drawn.info, drawn.stretch, drawn.flipped_fraction
         vol, fwd, inv, mesh, vinfo = drawn.view
@@ -1835,20 +1835,35 @@ def _drawn(prep, d: _Drawn, report=None) -> _Drawn:
     return d
 
 
-def _shown_more(prep, drawn: _Drawn, pushed: _Drawn) -> _Drawn:
-    """Of the drawn map and its small fold pushed apart (drawn here), the one whose view shows more of the lumen's
-    wall (SMALL_PUSH_BY_VIEW): VIEW_CHECK_POINTS points of the lumen's edge (a sample by position, quality.mucosa_points)
-    each shown where the view's first tissue along its pixel lies at its depth (quality.visible_points, the grade's
-    own test); the drawn map on a tie."""
+def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
+    """Of the drawn map of ``cut`` and its small fold pushed apart, the one whose view shows more of the lumen's wall
+    (SMALL_PUSH_BY_VIEW); the drawn map on a tie. ``push(check)`` makes the pushed flat map (kept on the push's own
+    test, else the map as it was: see _push_retry); it is called only where the drawn view leaves a point unshown,
+    since a push cannot show more than every point. The points: VIEW_CHECK_POINTS of the lumen's edge picked by position
+    (quality.mucosa_points); each shown where the view's first tissue along its pixel lies at its depth
+    (quality.visible_points, the grade's own test). ``check()`` is called between the push's steps."""
     from ..quality import mucosa_points, visible_points
     from ..view import first_hit
 
     pts = mucosa_points(prep.lumen_crop, np.asarray(prep.centerline.points_lps), max_points=VIEW_CHECK_POINTS,
                         sample="hash")
-    pushed = _drawn(prep, pushed)
-    shown = [int(visible_points(d.view[0], d.view[1](pts), first_hit(d.view[0])[0]).sum()) for d in (drawn, pushed)]
-    keep = pushed if shown[1] > shown[0] else drawn
-    keep.info.update(small_push_shown=shown, small_push_points=int(len(pts)), small_push_kept=keep is pushed)
+
+    def shown(d: _Drawn) -> int:
+        return int(visible_points(d.view[0], d.view[1](pts), first_hit(d.view[0])[0]).sum())
+
+    counts = [shown(drawn), None]
+    trace = {"small_push_points": int(len(pts)), "small_push_shown": counts, "small_push_kept": False}
+    keep = drawn
+    if counts[0] < len(pts):
+        flat = push(check)
+        trace.update({k: flat[4][k] for k in ("push_mm2", "push_defect_mm2", "push_seconds", "push_steps",
+                                              "push_held")})
+        if flat[4]["push_kept"]:
+            pushed = _drawn(prep, _finish(cut, flat, prep.pixel_mm))
+            counts[1] = shown(pushed)
+            if counts[1] > counts[0]:
+                keep, trace["small_push_kept"] = pushed, True
+    keep.info.update(trace)
     return keep
 
 
@@ -2084,13 +2099,17 @@ def _pushed(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> tupl
     if current[3] <= PUSH_FROM_MM2 and not small:
         return current
     used_b = bonly if info["boundary_weight"] == BOUNDARY_WEIGHT else b2
-    got = _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check,
-                      steps=SMALL_PUSH_STEPS if small else PUSH_STEPS, hold=small and SMALL_PUSH_HOLD)
-    if small and SMALL_PUSH_BY_VIEW and got[4]["push_kept"]:
-        # rule 44: the pushed map waits beside the map as it was; the method keeps the one whose view shows more
-        trace = {k: got[4][k] for k in ("push_mm2", "push_defect_mm2", "push_seconds", "push_steps", "push_held")}
-        return (*current[:4], dict(info, **trace, push_kept=False, _small_push=got))
-    return got
+    if small and SMALL_PUSH_BY_VIEW:
+        # rule 44: the push waits until the map as it was is drawn; the method keeps the one whose view shows more
+        def push(check_view=None):
+            """The map with the small fold pushed apart (held beyond it) where the push's own test keeps it, else as
+            it was (its info's ``push_kept`` tells which)."""
+            return _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check_view,
+                               steps=SMALL_PUSH_STEPS, hold=SMALL_PUSH_HOLD)
+
+        return (*current[:4], dict(info, _small_push=push))
+    return _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check,
+                       steps=SMALL_PUSH_STEPS if small else PUSH_STEPS, hold=small and SMALL_PUSH_HOLD)
 
 
 def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None, *,
