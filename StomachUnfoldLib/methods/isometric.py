@@ -211,6 +211,11 @@ SMALL_PUSH_HOLD = False
 #: this asks the view. False: rule 43 as it was.
 SMALL_PUSH_BY_VIEW = False
 VIEW_CHECK_POINTS = 8000
+#: Rule 45 (docs/RULE45_small_push_shown_near.md): rule 44's check on the wall near the fold only: the lumen-edge
+#: points in the box round the peeled fold's mucosa grown by VIEW_CHECK_NEAR_MM (mm; PUSH_NEAR_MM, the push's own
+#: reach), drawn on that part of the lumen alone; the push is made only where one of them is unshown. None: rule 44's
+#: whole wall.
+VIEW_CHECK_NEAR_MM = None
 HOLD_WEIGHT = 1000.0
 PUSH_SKIP = 8
 PUSH_WEIGHT = 10.0
@@ -1840,13 +1845,14 @@ def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
     (SMALL_PUSH_BY_VIEW); the drawn map on a tie. ``push(check)`` makes the pushed flat map (kept on the push's own
     test, else the map as it was: see _push_retry); it is called only where the drawn view leaves a point unshown,
     since a push cannot show more than every point. The points: VIEW_CHECK_POINTS of the lumen's edge picked by position
-    (quality.mucosa_points); each shown where the view's first tissue along its pixel lies at its depth
+    (_check_points); each shown where the view's first tissue along its pixel lies at its depth
     (quality.visible_points, the grade's own test). ``check()`` is called between the push's steps."""
-    from ..quality import mucosa_points, visible_points
+    from ..quality import visible_points
     from ..view import first_hit
 
-    pts = mucosa_points(prep.lumen_crop, np.asarray(prep.centerline.points_lps), max_points=VIEW_CHECK_POINTS,
-                        sample="hash")
+    pts = _check_points(prep, drawn.hidden)
+    if not len(pts):
+        return drawn
 
     def shown(d: _Drawn) -> int:
         return int(visible_points(d.view[0], d.view[1](pts), first_hit(d.view[0])[0]).sum())
@@ -1865,6 +1871,22 @@ def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
                 keep, trace["small_push_kept"] = pushed, True
     keep.info.update(trace)
     return keep
+
+
+def _check_points(prep, hidden_lps: np.ndarray | None) -> np.ndarray:
+    """The lumen-edge points (LPS mm, quality.mucosa_points, at most VIEW_CHECK_POINTS picked by position) that
+    _shown_more counts: the whole wall's (rule 44), or with VIEW_CHECK_NEAR_MM (rule 45) those in the box round the
+    peeled fold's mucosa ``hidden_lps`` (LPS mm) grown by that margin (mm), drawn on that part of the lumen alone."""
+    from ..quality import mucosa_points
+
+    lum, cl = prep.lumen_crop, np.asarray(prep.centerline.points_lps)
+    if VIEW_CHECK_NEAR_MM is not None:
+        if hidden_lps is None or not len(hidden_lps):
+            return np.zeros((0, 3))
+        ijk = lum.lps_to_index(np.asarray(hidden_lps, float))
+        grow = float(VIEW_CHECK_NEAR_MM) / np.asarray(lum.spacing, float)
+        lum = lum.crop(np.floor(ijk.min(0) - grow), np.ceil(ijk.max(0) + grow) + 1)
+    return mucosa_points(lum, cl, max_points=VIEW_CHECK_POINTS, sample="hash")
 
 
 def _bridged(cut: IsoSurface) -> IsoSurface:
