@@ -1,6 +1,8 @@
 """The isometric method (ARAP flattening of the cut-open inner wall): pieces on exact meshes, and the whole run on
 the tiny J phantom through ``unfold(..., UnfoldParameters(method="isometric"))``.
 """
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -796,14 +798,16 @@ def test_under_rule_44_the_small_push_waits_beside_the_map(monkeypatch):
     assert big[4]["push_kept"] and "_small_push" not in big[4]
 
 
-def test_under_rule_44_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch):
+@pytest.mark.parametrize("near_mm", [None, 20.0])
+def test_under_rules_44_and_45_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch, near_mm):
     # the tiny J's fold taken as a small one: both maps drawn, the one whose view shows more lumen-edge points kept
+    # (rule 44: points of the whole wall; rule 45: those in a box round the fold)
     import StomachUnfoldLib.methods.isometric as iso
-    from StomachUnfoldLib.quality import mucosa_points, visible_points
+    from StomachUnfoldLib.quality import visible_points
     from StomachUnfoldLib.view import first_hit
 
     for name, value in (("PUSH_FROM_MM2", 1e9), ("SMALL_PUSH_STEPS", 20), ("SMALL_PUSH_HOLD", True),
-                        ("SMALL_PUSH_BY_VIEW", True), ("FLIP_DEGREES", ())):
+                        ("SMALL_PUSH_BY_VIEW", True), ("FLIP_DEGREES", ()), ("VIEW_CHECK_NEAR_MM", near_mm)):
         monkeypatch.setattr(iso, name, value)
     ct, truth = make_phantom("j", "tiny")
     res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
@@ -816,9 +820,52 @@ def test_under_rule_44_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch)
     assert m["small_push_kept"] == (shown_pushed > shown_plain)
     assert m["hidden_fold_mm2"] == pytest.approx(after if m["small_push_kept"] else before)
     # the count the method kept by is the kept view's own, on the same points
-    pts = mucosa_points(res.lumen_crop, res.centerline_lps, max_points=iso.VIEW_CHECK_POINTS, sample="hash")
+    prep = SimpleNamespace(lumen_crop=res.lumen_crop, centerline=SimpleNamespace(points_lps=res.centerline_lps))
+    hidden = None
+    if near_mm is not None:            # the box is round the fold the map as it was peeled: its mucosa, from the push
+        hidden = _fold_mucosa(ct, truth)
+    pts = iso._check_points(prep, hidden)
+    assert len(pts) == m["small_push_points"]
     seen = visible_points(res.unfolded, res.correspondence.to_unfolded(pts), first_hit(res.unfolded)[0]).sum()
     assert seen == max(shown_plain, shown_pushed)
+
+
+def _fold_mucosa(ct, truth):
+    """The tiny J's peeled fold's mucosa (LPS mm) in the map as it was, its folds left peeled (no push of any kind)."""
+    import StomachUnfoldLib.methods.isometric as iso
+    from StomachUnfoldLib.frontend import prepare
+
+    prep = prepare(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                   UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
+    cut = iso.open_surface(prep, prep.params.isometric_vertices, [])
+    flat = iso._flatten(prep, cut, lambda fraction: None)
+    return cut.v[np.unique(flat[2])]
+
+
+def test_rule_45_counts_the_wall_near_the_fold_only(monkeypatch):
+    # the check's points: the whole wall's sample (rule 44), or every lumen-edge point in the box round the fold
+    import StomachUnfoldLib.methods.isometric as iso
+    from StomachUnfoldLib.quality import mucosa_points
+
+    ct, truth = make_phantom("j", "tiny")
+    res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                 UnfoldParameters(method="isometric", wall_thickness_mm=4.0, quality=False))
+    prep = SimpleNamespace(lumen_crop=res.lumen_crop, centerline=SimpleNamespace(points_lps=res.centerline_lps))
+    whole = iso._check_points(prep, None)
+    assert np.array_equal(whole, mucosa_points(res.lumen_crop, res.centerline_lps, max_points=iso.VIEW_CHECK_POINTS,
+                                               sample="hash"))
+    fold = whole[:5] + 0.0                                   # five points of the wall stand for a fold's mucosa
+    monkeypatch.setattr(iso, "VIEW_CHECK_NEAR_MM", 6.0)
+    near = iso._check_points(prep, fold)
+    assert 0 < len(near) < len(whole)
+    ijk, f_ijk = res.lumen_crop.lps_to_index(near), res.lumen_crop.lps_to_index(fold)
+    grow = 6.0 / res.lumen_crop.spacing + 2                  # the box, on the voxel grid, with a voxel's slack
+    assert np.all((ijk >= f_ijk.min(0) - grow) & (ijk <= f_ijk.max(0) + grow))
+    # each is a point of the wall: within a voxel of the whole lumen's own edge points (drawn there without a cap)
+    from scipy.spatial import cKDTree
+    every = mucosa_points(res.lumen_crop, res.centerline_lps, max_points=10 ** 9)
+    assert cKDTree(every).query(near)[0].max() < res.lumen_crop.spacing.max()
+    assert len(iso._check_points(prep, np.zeros((0, 3)))) == 0   # no fold: nothing to count
 
 
 def test_the_strain_limit_relieves_a_stretched_boundary_and_leaves_the_rest():
