@@ -207,14 +207,18 @@ SMALL_PUSH_HOLD = False
 #: Rule 44 (docs/RULE44_small_push_shown.md): under rules 42 and 43, the small fold's pushed map is not kept on the
 #: push's own test alone: both maps are drawn, and the one whose view shows more of the lumen's wall is kept
 #: (:func:`_shown_more`, on VIEW_CHECK_POINTS points of the lumen's edge picked by position, not the grade's draw),
-#: the map as it was on a tie. Rule 43 lost visible mucosa at the lip of the fold it opened on two CT 03 hybrids;
-#: this asks the view. False: rule 43 as it was.
+#: the map as it was on a tie; the push is made only where that view leaves a point unshown. Rule 43 lost visible
+#: mucosa at the lip of the fold it opened on two CT 03 hybrids; this asks the view. False: rule 43 as it was. Off: on
+#: its decision sets (123 new volumes) visible mucosa rose on 9 and fell on none, no marker or grade moved, but the
+#: small stomachs' median time rose 14 % (the push and a second view, on a third of them).
 SMALL_PUSH_BY_VIEW = False
 VIEW_CHECK_POINTS = 8000
 #: Rule 45 (docs/RULE45_small_push_shown_near.md): rule 44's check on the wall near the fold only: the lumen-edge
 #: points in the box round the peeled fold's mucosa grown by VIEW_CHECK_NEAR_MM (mm; PUSH_NEAR_MM, the push's own
 #: reach), drawn on that part of the lumen alone; the push is made only where one of them is unshown. None: rule 44's
-#: whole wall.
+#: whole wall. Off: on its decision sets (123 new volumes) nothing was lost, visible mucosa rose on 6, but the push was
+#: made on as many small stomachs as under rule 44 (a fold's lip nearly always has a point drawn off its depth) and
+#: their median time rose 10.8 % (10 % allowed).
 VIEW_CHECK_NEAR_MM = None
 HOLD_WEIGHT = 1000.0
 PUSH_SKIP = 8
