@@ -859,7 +859,7 @@ def test_rule_45_counts_the_wall_near_the_fold_only(monkeypatch):
     near = iso._check_points(prep, fold)
     assert 0 < len(near) < len(whole)
     ijk, f_ijk = res.lumen_crop.lps_to_index(near), res.lumen_crop.lps_to_index(fold)
-    grow = 6.0 / res.lumen_crop.spacing + 2                  # the box, on the voxel grid, with a voxel's slack
+    grow = 6.0 / res.lumen_crop.spacing + 2                  # the box, on the voxel grid, with two voxels' slack
     assert np.all((ijk >= f_ijk.min(0) - grow) & (ijk <= f_ijk.max(0) + grow))
     # each is a point of the wall: within a voxel of the whole lumen's own edge points (drawn there without a cap)
     from scipy.spatial import cKDTree
