@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from scipy import ndimage
@@ -1846,11 +1847,12 @@ def _drawn(prep, d: _Drawn, report=None) -> _Drawn:
 
 def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
     """Of the drawn map of ``cut`` and its small fold pushed apart, the one whose view shows more of the lumen's wall
-    (SMALL_PUSH_BY_VIEW); the drawn map on a tie. ``push(check)`` makes the pushed flat map (kept on the push's own
-    test, else the map as it was: see _push_retry); it is called only where the drawn view leaves a point unshown,
-    since a push cannot show more than every point. The points: VIEW_CHECK_POINTS of the lumen's edge picked by position
-    (_check_points); each shown where the view's first tissue along its pixel lies at its depth
-    (quality.visible_points, the grade's own test). ``check()`` is called between the push's steps."""
+    (SMALL_PUSH_BY_VIEW); the drawn map on a tie. ``push(check=...)`` makes the pushed flat map (:func:`_push_retry`:
+    kept on the push's own test, else the map as it was, its info's ``push_kept`` telling which); it is called only
+    where the drawn view leaves a point unshown, since a push cannot show more than every point. The points:
+    VIEW_CHECK_POINTS of the lumen's edge picked by position (_check_points); each shown where the view's first
+    tissue along its pixel lies at its depth (quality.visible_points, the grade's own test). ``check()`` is called
+    between the push's steps."""
     from ..quality import visible_points
     from ..view import first_hit
 
@@ -1865,7 +1867,7 @@ def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
     trace = {"small_push_points": int(len(pts)), "small_push_shown": counts, "small_push_kept": False}
     keep = drawn
     if counts[0] < len(pts):
-        flat = push(check)
+        flat = push(check=check)
         trace.update({k: flat[4][k] for k in ("push_mm2", "push_defect_mm2", "push_seconds", "push_steps",
                                               "push_held")})
         if flat[4]["push_kept"]:
@@ -2125,17 +2127,12 @@ def _pushed(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> tupl
     if current[3] <= PUSH_FROM_MM2 and not small:
         return current
     used_b = bonly if info["boundary_weight"] == BOUNDARY_WEIGHT else b2
+    push = partial(_push_retry, cut, current, pairs, used_b, s, info["boundary_weight"], similar,
+                   steps=SMALL_PUSH_STEPS if small else PUSH_STEPS, hold=small and SMALL_PUSH_HOLD)
     if small and SMALL_PUSH_BY_VIEW:
         # rule 44: the push waits until the map as it was is drawn; the method keeps the one whose view shows more
-        def push(check_view=None):
-            """The map with the small fold pushed apart (held beyond it) where the push's own test keeps it, else as
-            it was (its info's ``push_kept`` tells which)."""
-            return _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check_view,
-                               steps=SMALL_PUSH_STEPS, hold=SMALL_PUSH_HOLD)
-
         return (*current[:4], dict(info, _small_push=push))
-    return _push_retry(cut, current, pairs, used_b, s, info["boundary_weight"], similar, check=check,
-                       steps=SMALL_PUSH_STEPS if small else PUSH_STEPS, hold=small and SMALL_PUSH_HOLD)
+    return push(check=check)
 
 
 def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None, *,
