@@ -798,16 +798,17 @@ def test_under_rule_44_the_small_push_waits_beside_the_map(monkeypatch):
     assert big[4]["push_kept"] and "_small_push" not in big[4]
 
 
-@pytest.mark.parametrize("near_mm", [None, 20.0])
-def test_under_rules_44_and_45_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch, near_mm):
+@pytest.mark.parametrize("near_mm,local", [(None, False), (20.0, False), (20.0, True)])
+def test_under_rules_44_to_46_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch, near_mm, local):
     # the tiny J's fold taken as a small one: both maps drawn, the one whose view shows more lumen-edge points kept
-    # (rule 44: points of the whole wall; rule 45: those in a box round the fold)
+    # (rule 44: points of the whole wall; rule 45: those in a box round the fold; rule 46: the push solved near it)
     import StomachUnfoldLib.methods.isometric as iso
     from StomachUnfoldLib.quality import visible_points
     from StomachUnfoldLib.view import first_hit
 
     for name, value in (("PUSH_FROM_MM2", 1e9), ("SMALL_PUSH_STEPS", 20), ("SMALL_PUSH_HOLD", True),
-                        ("SMALL_PUSH_BY_VIEW", True), ("FLIP_DEGREES", ()), ("VIEW_CHECK_NEAR_MM", near_mm)):
+                        ("SMALL_PUSH_BY_VIEW", True), ("FLIP_DEGREES", ()), ("VIEW_CHECK_NEAR_MM", near_mm),
+                        ("PUSH_LOCAL", local)):
         monkeypatch.setattr(iso, name, value)
     ct, truth = make_phantom("j", "tiny")
     res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
@@ -840,6 +841,51 @@ def _fold_mucosa(ct, truth):
     cut = iso.open_surface(prep, prep.params.isometric_vertices, [])
     flat = iso._flatten(prep, cut, lambda fraction: None)
     return cut.v[np.unique(flat[2])]
+
+
+def test_arap_with_fixed_vertices_solves_only_the_others(monkeypatch):
+    # rule 46's push: the vertices beyond PUSH_NEAR_MM of the fold stay exactly where they were, the lips still part,
+    # and the map near the fold is about what rule 43's hold (a weight, not a constraint) gives
+    import StomachUnfoldLib.methods.isometric as iso
+    from StomachUnfoldLib.methods.isometric import overlapping_triangles, push_apart
+
+    monkeypatch.setattr(iso, "PUSH_NEAR_MM", 6.0)              # the disc is 40 mm across
+    v, f, uv0 = _ruffled_disc()
+    uv, _ = arap(v, f, uv0, injective=False)
+    over = overlapping_triangles(f, uv)
+    fixed = iso._beyond_reach(f, uv, f[over])
+    assert 0.3 * len(v) < fixed.sum() < len(v)
+    local = push_apart(v, f, uv, fold=f[over], fixed=fixed)
+    held = push_apart(v, f, uv, fold=f[over], hold=True)
+    assert np.array_equal(local[fixed], uv[fixed])                           # fixed: to the bit
+    assert overlapping_triangles(f, local).sum() < 0.3 * over.sum()          # the lips pushed apart all the same
+    assert np.linalg.norm(local[~fixed] - uv[~fixed], axis=1).max() > 0.5    # they moved
+    assert np.linalg.norm(local - held, axis=1).max() < 0.25                 # the held push, near enough
+    assert iso._beyond_reach(f, uv, None) is None                            # no fold: nothing fixed
+    # with nothing fixed the solve is the plain one (one vertex pinned for translation)
+    none = arap(v, f, uv, injective=False, max_iter=5, tol=0.0, fixed=np.zeros(len(v), bool))[0]
+    assert np.array_equal(none, arap(v, f, uv, injective=False, max_iter=5, tol=0.0)[0])
+
+
+def test_the_strain_limit_leaves_fixed_vertices_where_they_are():
+    # the pulled grid of the test below: the limit moves only the vertices not fixed, and a map whose stretched
+    # triangles are all fixed comes back as it was, with its stretched triangles counted
+    nu = nv = 15
+    g = np.stack(np.meshgrid(np.arange(nu) * 2.0, np.arange(nv) * 2.0, indexing="ij"), -1).reshape(-1, 2)
+    v = np.c_[g, np.zeros(len(g))]
+    f = _grid(nu, nv)
+    uv = g.copy()
+    pulled = 7 * nv + 0
+    uv[pulled, 1] -= 2.4
+    fixed = np.linalg.norm(g - g[pulled], axis=1) > 6.0
+    out, info = limit_stretch(v, f, uv, fixed=fixed)
+    assert np.array_equal(out[fixed], uv[fixed])
+    assert info["stretched_triangles_before"] > 0 and info["stretched_triangles"] == 0
+    assert stretch_stats(v, f, out)["stretch_max"] <= 1.5
+    stuck = np.ones(len(g), bool)
+    same, info2 = limit_stretch(v, f, uv, fixed=stuck)
+    assert np.array_equal(same, uv)
+    assert info2["stretched_triangles"] == info2["stretched_triangles_before"] > 0
 
 
 def test_rule_45_counts_the_wall_near_the_fold_only(monkeypatch):

@@ -221,6 +221,12 @@ VIEW_CHECK_POINTS = 8000
 #: made on as many small stomachs as under rule 44 (a fold's lip nearly always has a point drawn off its depth) and
 #: their median time rose 10.8 % (10 % allowed).
 VIEW_CHECK_NEAR_MM = None
+#: Rule 46 (docs/RULE46_small_push_local.md): under rule 45, the small fold's push starts from the map as drawn (after
+#: its strain limit, before it is turned to the view's axes) and solves only the vertices of the triangles within
+#: PUSH_NEAR_MM of the fold, the rest fixed where they are (rule 43's hold made exact, every term kept); the pushed
+#: map's strain limit then moves only those vertices. Rule 45 solved and strain-limited the whole map again for a
+#: push that moves a small part of it. False: rule 45's push.
+PUSH_LOCAL = False
 HOLD_WEIGHT = 1000.0
 PUSH_SKIP = 8
 PUSH_WEIGHT = 10.0
@@ -361,7 +367,7 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
          pairs: tuple | None = None, stiffness: np.ndarray | None = None,
          boundary_weight: float = 0.0, boundary_only: np.ndarray | None = None,
          similar: np.ndarray | None = None, scale_range: tuple = (0.5, 1.0), factors: dict | None = None,
-         pull: tuple | None = None) -> tuple[np.ndarray, dict]:
+         pull: tuple | None = None, fixed: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """ARAP flat map (V,2 mm) of a disc mesh (v LPS mm, f triangles) from the start map uv0; free boundary.
 
     Local/global iterations (Liu et al. 2008): per-triangle closest rotations of the current Jacobians, then one
@@ -380,17 +386,27 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     ``scale_range``. ``factors``: a dict kept by the caller for maps of this one mesh (v, f): the factorised system
     is stored there and used again by a later call with the same boundary weight, ``boundary_only`` and ``pairs``
     objects (the as-similar-as-possible retry solves its parent map's system). ``pull``: see :func:`_add_pull`.
+    ``fixed`` (bool (V,)): vertices kept where uv0 has them, the rest solved with every term (the system restricted to
+    them, the fixed ones' columns moved to the right-hand side; no pinned vertex, no stored factors; the local step and
+    the energies over the triangles with a corner solved); none fixed is the plain solve.
     Returns (uv, info with iterations, energy trace, flipped count).
     """
     progress = progress or (lambda fraction: None)
     nv, nf = len(v), len(f)
+    if fixed is not None and not np.any(fixed):
+        fixed = None                            # none fixed: the plain solve, one vertex pinned for translation
     x, area = triangle_frames(v, f)
     good = area > 1e-10 * max(float(np.median(area)), 1e-12)
     w = np.clip(_half_edge_cot(x), *weight_clip) * good[:, None]     # half-edge weights (F,3)
     if stiffness is not None:
         w = w * np.asarray(stiffness, float)[:, None]
-    lu, pin, keep, col_pin = _arap_factor(factors if stiffness is None else None, f, w, nv, boundary_weight,
-                                          boundary_only, pairs, pull)
+    if fixed is not None:
+        if np.sum(signed_area_2d(uv0, f)[good] > 0) < 0.5 * good.sum():
+            raise ValueError("a map with fixed vertices must not be mirrored (ARAP would turn it over)")
+        lu, free, fixed_rhs = _fixed_factor(f, w, nv, boundary_weight, boundary_only, pairs, pull, fixed, uv0)
+    else:
+        lu, pin, keep, col_pin = _arap_factor(factors if stiffness is None else None, f, w, nv, boundary_weight,
+                                              boundary_only, pairs, pull)
     if pairs is not None:
         pa, pb, pg, pw = pairs
     # edge vectors of the rest triangles for half-edge c: from vertex c+1 to vertex c+2
@@ -402,10 +418,15 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
     if np.sum(signed_area_2d(uv, f)[good] > 0) < 0.5 * good.sum():
         uv[:, 1] *= -1.0
     iterates, energies = [], []  # every iterate (the latest whose free boundary does not cross is found last); energies
-    local = _LocalStep(f, i1, i2, w, dx, nv, similar, scale_range)
+    if fixed is None:
+        local = _LocalStep(f, i1, i2, w, dx, nv, similar, scale_range)
+    else:                                       # only the triangles with a corner solved make its right-hand side
+        ts = ~np.asarray(fixed, bool)[f].all(1)
+        local = _LocalStep(f[ts], i1, i2, w[ts], dx[ts], nv, None if similar is None else np.asarray(similar)[ts],
+                           scale_range)
     rotations, energy = local.rotations, local.energy
     pends = _ends_matrix(pb, pa, nv) if pairs is not None else None
-    kept = np.flatnonzero(keep)                                        # every vertex but the pinned one
+    kept = np.flatnonzero(keep) if fixed is None else None             # every vertex but the pinned one
 
     it = 0
     for it in range(1, max_iter + 1):
@@ -420,10 +441,14 @@ def arap(v: np.ndarray, f: np.ndarray, uv0: np.ndarray, max_iter: int = 50, tol:
         if pull is not None:
             e += _add_pull(pull, uv, b)
         energies.append(e)
-        rhs = np.take(b, kept, axis=0) - col_pin[:, None] * uv[pin][None, :]
-        sol = lu.solve(rhs)
-        new = np.empty_like(uv)                 # the solved vertices round the pinned one: slices, not a scatter
-        new[:pin], new[pin], new[pin + 1:] = sol[:pin], uv[pin], sol[pin:]
+        if fixed is not None:
+            new = uv.copy()
+            new[free] = lu.solve(np.ascontiguousarray(np.take(b, free, axis=0) - fixed_rhs))
+        else:
+            rhs = np.take(b, kept, axis=0) - col_pin[:, None] * uv[pin][None, :]
+            sol = lu.solve(rhs)
+            new = np.empty_like(uv)             # the solved vertices round the pinned one: slices, not a scatter
+            new[:pin], new[pin], new[pin + 1:] = sol[:pin], uv[pin], sol[pin:]
         if not np.all(np.isfinite(new)):
             raise SimulationError("the ARAP flat map diverged (non-finite coordinates); the surface mesh is broken")
         uv = new
@@ -541,6 +566,34 @@ def _arap_factor(factors: dict | None, f: np.ndarray, w: np.ndarray, nv: int, bo
     pv = np.asarray(pull[0], np.int64)
     D = coo_matrix((np.full(len(pv), 1.0) * np.asarray(pull[1], float), (pv, pv)), shape=(nv, nv))
     return _pinned_factor((_system_matrix(f, w, nv, boundary_weight, boundary_only, pairs) + D).tocsc(), f)
+
+
+def _fixed_factor(f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float, boundary_only, pairs, pull,
+                  fixed: np.ndarray, uv0: np.ndarray) -> tuple:
+    """ARAP's system (with ``pull``'s weights on its vertices' diagonal) restricted to the vertices not ``fixed``
+    (bool (V,)): (LU factors, the free vertices' indices, the fixed vertices' part of the free rows (n_free,2), from
+    their places in uv0 (V,2 mm), to subtract from the right-hand side); SimulationError when it cannot be factorised."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import splu
+
+    M = _system_matrix(f, w, nv, boundary_weight, boundary_only, pairs)
+    if pull is not None:
+        pv = np.asarray(pull[0], np.int64)
+        M = M + coo_matrix((np.full(len(pv), 1.0) * np.asarray(pull[1], float), (pv, pv)), shape=(nv, nv))
+    M = M.tocsr()
+    fixed = np.asarray(fixed, bool)
+    free = np.flatnonzero(~fixed)
+    if not len(free):
+        raise SimulationError("every vertex of the flat map is fixed: nothing to solve")
+    Mf = M[free]
+    try:
+        lu = splu(Mf[:, free].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                  options={"SymmetricMode": True})
+    except RuntimeError as e:
+        raise SimulationError(f"the ARAP system of the surface could not be factorised ({e}); the mesh is "
+                              "broken") from e
+    held = np.flatnonzero(fixed)
+    return lu, free, np.asarray(Mf[:, held] @ np.asarray(uv0, float)[held])
 
 
 def _add_pull(pull: tuple, uv: np.ndarray, b: np.ndarray) -> float:
@@ -908,7 +961,8 @@ def stretch_stats(v: np.ndarray, f: np.ndarray, uv: np.ndarray) -> dict:
 
 
 def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | None = None,
-                  sweeps: int | None = None, solves: int | None = None) -> tuple[np.ndarray, dict]:
+                  sweeps: int | None = None, solves: int | None = None, fixed: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, dict]:
     """Strain-limit a flat map (V,2 mm) of a mesh (v LPS mm, f): relieve the triangles stretched over ``limit`` (s1).
 
     ARAP spreads the surface's curvature evenly, but leaves a few triangles by the free boundary stretched 1.5-2.2x
@@ -923,8 +977,9 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     turns over (:func:`undo_turned`), wholly if one is still turned; the sweeps then finish what it leaves. After
     it, every STRETCH_CHECK_EVERY sweeps and at the end, the map is kept if it has fewer triangles over the limit
     than the best so far, no boundary crossing itself that the input did not have, and no more edges (springs)
-    longer than ``limit`` times their rest length; the input if none is. Returns (uv mm, a copy; info: triangles
-    over the limit before and after, global rounds, sweeps, largest move in mm).
+    longer than ``limit`` times their rest length; the input if none is. ``fixed`` (bool (V,)): vertices that stay
+    where they are (the global step solves the others, the sweeps move only them). Returns (uv mm, a copy; info:
+    triangles over the limit before and after, global rounds, sweeps, largest move in mm).
     """
     limit = STRETCH_LIMIT if limit is None else float(limit)
     sweeps = STRETCH_SWEEPS if sweeps is None else int(sweeps)
@@ -939,6 +994,8 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     out = uv0.copy()
     nv = len(out)
     sign0 = np.sign(signed_area_2d(out, fg))
+    # the triangles the limit can move: all, or with ``fixed`` those with a corner not fixed
+    movable = np.ones(len(fg), bool) if fixed is None else ~np.asarray(fixed, bool)[fg].all(1)
     incident = np.bincount(fg.ravel(), minlength=nv)
     vt_ptr = np.concatenate([[0], np.cumsum(incident)])          # vertex -> its triangles (CSR)
     vt_idx = np.argsort(fg.ravel(), kind="stable") // 3
@@ -950,8 +1007,8 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
 
     s1 = jacobians(np.arange(len(fg)))[1]
     before = int(np.sum(s1 > limit))
-    if not before:
-        return out, {"stretched_triangles_before": 0, "stretched_triangles": 0, "stretch_sweeps": 0,
+    if not np.any(s1[movable] > limit):
+        return out, {"stretched_triangles_before": before, "stretched_triangles": before, "stretch_sweeps": 0,
                      "stretch_solves": 0, "stretch_move_mm": 0.0}
     bedges, e = _boundary_edges(f), _edges(f)
     l0 = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1) * limit
@@ -974,9 +1031,9 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     # first the global solve (every triangle at once); the sweeps then finish what it leaves, or start over from the
     # input where it flipped a triangle or was not kept (a boundary crossing itself, more long springs)
     o = float(np.sign(np.sum(sign0)) or 1.0)                        # the map's orientation (it may be mirrored)
-    out[:], solves = _global_strain_limit(fg, xg, Ainv, out, goal, aim, solves, o)
+    out[:], solves = _global_strain_limit(fg, xg, Ainv, out, goal, aim, solves, o, fixed=fixed)
     if solves and not crossed0 and STRETCH_PIN_WEIGHT > 0:
-        out[:], more = _pinned_resolve(fg, xg, Ainv, uv0, out, bedges, goal, aim, o)
+        out[:], more = _pinned_resolve(fg, xg, Ainv, uv0, out, bedges, goal, aim, o, fixed=fixed)
         solves += more
     if solves and not crossed0:
         undo_crossings(out, uv0, bedges)
@@ -991,7 +1048,7 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
         sign0 = np.sign(signed_area_2d(out, fg))                    # the sweeps keep what the global step left
     sweep = 0
     for sweep in range(1, sweeps + 1):
-        bad = np.flatnonzero(s1 > goal)
+        bad = np.flatnonzero((s1 > goal) & movable)
         if not len(bad):
             break
         J = jacobians(bad)[0]
@@ -1002,6 +1059,8 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
         idx = fg[bad].ravel()
         vs = np.unique(idx)
         step = np.stack([np.bincount(idx, d[:, k], nv)[vs] for k in range(2)], 1) / incident[vs][:, None]
+        if fixed is not None:
+            step[fixed[vs]] = 0.0
         near = np.unique(np.concatenate([vt_idx[vt_ptr[i]:vt_ptr[i + 1]] for i in vs]))   # triangles that move
         old = out[vs].copy()
         out[vs] += step
@@ -1046,11 +1105,12 @@ def hold_within_limit(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float
 
 
 def _pinned_resolve(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv0: np.ndarray, uv: np.ndarray,
-                    bedges: np.ndarray, goal: float, aim: float, orientation: float) -> tuple[np.ndarray, int]:
+                    bedges: np.ndarray, goal: float, aim: float, orientation: float,
+                    fixed: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Where the global strain step made the map's outline cross itself, solve it again from the input map ``uv0``
     (V,2 mm) with the vertices within STRETCH_UNCROSS_MM of each crossing (the input's, growing while one remains)
-    held softly where they were (STRETCH_PIN_WEIGHT). Returns (uv mm: the first uncrossed solve, else ``uv``; the
-    solves run)."""
+    held softly where they were (STRETCH_PIN_WEIGHT); ``fixed`` as for :func:`_global_strain_limit`. Returns (uv mm:
+    the first uncrossed solve, else ``uv``; the solves run)."""
     from scipy.spatial import cKDTree
 
     at = boundary_crossings(uv, bedges)
@@ -1060,7 +1120,7 @@ def _pinned_resolve(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv0: np.ndar
     for reach in STRETCH_UNCROSS_MM:
         near = [np.asarray(i, np.int64) for i in tree.query_ball_point(at, reach)]
         pins = np.union1d(pins, np.concatenate(near))
-        y, n = _global_strain_limit(f, x, Ainv, uv0, goal, aim, STRETCH_SOLVES, orientation, pins=pins)
+        y, n = _global_strain_limit(f, x, Ainv, uv0, goal, aim, STRETCH_SOLVES, orientation, pins=pins, fixed=fixed)
         total += n
         at = boundary_crossings(y, bedges)
         if not len(at):
@@ -1110,8 +1170,8 @@ def undo_turned(uv: np.ndarray, uv0: np.ndarray, f: np.ndarray, sign0: np.ndarra
 
 
 def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.ndarray, goal: float, aim: float,
-                         rounds: int, orientation: float = 1.0, pins: np.ndarray | None = None
-                         ) -> tuple[np.ndarray, int]:
+                         rounds: int, orientation: float = 1.0, pins: np.ndarray | None = None,
+                         fixed: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Strain limiting of a flat map (V,2 mm) by projections and one factorisation: returns (uv mm, solves).
 
     Each round clamps the Jacobian of every triangle stretched over ``goal`` to ``aim`` (its nearest Jacobian with s1
@@ -1124,6 +1184,7 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
     triangles over after 15 and 9 rounds, against 14 and 3 still over after 600 sweeps). Stops when none is over
     ``goal`` or after ``rounds`` rounds (none: the map as it was). ``pins`` (vertex indices): held towards the input
     map with STRETCH_PIN_WEIGHT times the Laplacian's mean diagonal, and then no rigid fit (the pins hold it).
+    ``fixed`` (bool (V,)): vertices kept where they are, the system solved for the others alone (no rigid fit either).
     """
     from scipy.sparse import diags
     from scipy.sparse.linalg import splu
@@ -1140,9 +1201,17 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
     if pinned:
         held[pins] = STRETCH_PIN_WEIGHT * float(np.mean(L.diagonal()))
     uv_in = np.asarray(uv, float)
+    A = (L + diags(held)).tocsc()
+    if fixed is not None:
+        free, hold = np.flatnonzero(~np.asarray(fixed, bool)), np.flatnonzero(fixed)
+        if not len(free):
+            return uv, 0
+        A = A.tocsr()
+        Af = A[free]
+        fixed_rhs = np.asarray(Af[:, hold] @ uv_in[hold])
+        A = Af[:, free].tocsc()
     try:
-        lu = splu((L + diags(held)).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
+        lu = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:
         return uv, 0
     i1, i2 = [(c + 1) % 3 for c in range(3)], [(c + 2) % 3 for c in range(3)]
@@ -1156,6 +1225,8 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
         s1, s2, det = _singular_values(J)
         s2 = s2 * np.sign(det) * orientation                            # < 0: turned over
         bad = (s1 > goal) | (s2 < STRETCH_SHRINK_MIN)
+        if fixed is not None:
+            bad &= ~np.asarray(fixed, bool)[f].all(1)                   # a triangle it cannot move is left
         if not bad.any():
             return y, n
         U, S, Vt = np.linalg.svd(J[bad])
@@ -1167,7 +1238,11 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
         J[bad] = U @ (S[:, :, None] * Vt)
         # weighted target half-edges J dx_c (3,F) per coordinate, written out (np.einsum("fij,fcj->cfi") to the bit)
         b = np.stack([ends @ ((J[:, k, 0] * dx0 + J[:, k, 1] * dx1) * wT).ravel() for k in range(2)], 1)
-        if pinned:
+        if fixed is not None:
+            rhs = b + (held[:, None] * uv_in if pinned else eps * y)
+            y = y.copy()
+            y[free] = lu.solve(np.ascontiguousarray(rhs[free] - fixed_rhs))
+        elif pinned:
             y = lu.solve(np.ascontiguousarray(b + held[:, None] * uv_in))
         else:
             y = _rigid_fit(lu.solve(np.ascontiguousarray(b + eps * y)), uv)
@@ -1796,7 +1871,9 @@ class IsometricFlattening(Method):
 class _Drawn:
     """A kept flat map on its way to the view: the cut surface (its peeled triangles dropped), the map (uv mm), its
     report section, stretch figures, the fraction orient_rigid found flipped, the peeled folds' mucosa (LPS mm, or
-    None), its warnings, and once sampled, the view (volume, to_unfolded, to_original, mesh, sampling info)."""
+    None), its warnings, the map of the whole cut surface (V,2 mm, its peeled triangles' vertices too) as its strain
+    limit left it, before it was turned (rule 46's push starts there), and once sampled, the view (volume,
+    to_unfolded, to_original, mesh, sampling info)."""
 
     cut: object
     uv: np.ndarray
@@ -1805,24 +1882,40 @@ class _Drawn:
     flipped_fraction: float
     hidden: np.ndarray | None
     warnings: list
+    limited: np.ndarray | None = None
     view: tuple | None = None
 
 
 def _finish(cut, flat: tuple, s: float) -> _Drawn:
     """The flat map ``flat`` = (uv mm, kept and fold triangles, fold area mm^2, info) made ready to draw: its peeled
     triangles dropped, its strain limited and held within STRETCH_LIMIT, turned rigidly to the view's axes (pixel
-    ``s`` mm)."""
+    ``s`` mm). Info's ``_fixed`` (bool (V,), rule 46): vertices the strain limit leaves where they are, unless the
+    others cannot take the stretch (a triangle left over STRETCH_LIMIT): then the whole map is limited."""
     uv, f_keep, f_fold, fold_mm2, info = flat
     info, warnings = dict(info), []
+    fixed = info.pop("_fixed", None)
+    full_uv = uv
     whole_mm2 = _area_mm2(cut.v, cut.f)
     hidden = cut.v[np.unique(f_fold)] if len(f_fold) else None  # the peeled folds' mucosa: not on the view
     info["hidden_folds"] = hidden_folds(cut.v, f_fold, f_keep)
     info["hidden_fold_mm2"] = fold_mm2
     info["hidden_fold_fraction"] = fold_mm2 / max(whole_mm2, 1e-9)  # of the whole cut-open wall
+    used = None
     if info["peeled_triangles"] or info["peeled_overlap_triangles"]:
+        used = np.unique(f_keep)
         cut, uv = _with_faces(cut, f_keep, uv)
-    uv, info_st = limit_stretch(cut.v, cut.f, uv)
+    start = uv
+    uv, info_st = limit_stretch(cut.v, cut.f, uv, fixed=None if fixed is None else
+                                (fixed if used is None else fixed[used]))
+    if fixed is not None:
+        info_st["stretch_local"] = not info_st["stretched_triangles"]
+        if info_st["stretched_triangles"]:      # the part it may move could not take the stretch: the whole map
+            uv, info_st = limit_stretch(cut.v, cut.f, start)
+            info_st["stretch_local"] = False
     info.update(info_st)
+    limited = uv.copy() if used is None else np.array(full_uv, float, copy=True)
+    if used is not None:
+        limited[used] = uv                      # the whole cut's map as limited (peeled flaps as they were)
     uv, info["stretch_guard_scale"] = hold_within_limit(cut.v, cut.f, uv)
     if info["stretch_guard_scale"] < 1.0:
         warnings.append(f"the strain limit left a triangle over {STRETCH_LIMIT:g}x: the whole flat map was "
@@ -1834,7 +1927,7 @@ def _finish(cut, flat: tuple, s: float) -> _Drawn:
     info["flipped_final"] = int(np.sum(np.sign(sa) != (np.sign(np.sum(np.sign(sa))) or 1.0)))
     if info["flipped_final"]:
         warnings.append(f"the flat map has {info['flipped_final']} flipped triangles")
-    return _Drawn(cut, uv, info, st, flipped_frac, hidden, warnings)
+    return _Drawn(cut, uv, info, st, flipped_frac, hidden, warnings, limited)
 
 
 def _drawn(prep, d: _Drawn, report=None) -> _Drawn:
@@ -1867,7 +1960,7 @@ def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
     trace = {"small_push_points": int(len(pts)), "small_push_shown": counts, "small_push_kept": False}
     keep = drawn
     if counts[0] < len(pts):
-        flat = push(check=check)
+        flat = push(check=check, start=drawn.limited) if PUSH_LOCAL else push(check=check)
         trace.update({k: flat[4][k] for k in ("push_mm2", "push_defect_mm2", "push_seconds", "push_steps",
                                               "push_held")})
         if flat[4]["push_kept"]:
@@ -2060,23 +2153,35 @@ def _push_targets(f: np.ndarray, bv: np.ndarray, reach, near=None, candidates: i
 
 def push_apart(v: np.ndarray, f: np.ndarray, uv: np.ndarray, pairs=None, boundary_only=None,
                boundary_weight: float = 0.0, similar=None, check=None, fold=None, steps: int = 0,
-               hold: bool = False) -> np.ndarray:
+               hold: bool = False, fixed: np.ndarray | None = None) -> np.ndarray:
     """A flat map (V,2 mm) whose folded flaps are pushed off the map they lie on (see PUSH_FROM_MM2): ``steps`` ARAP
     steps (PUSH_STEPS when 0; its distance ``pairs``, straight boundary and as-similar ``similar`` region as for the
     map uv) with every boundary vertex held at a target that moves it out of any triangle it lies inside. With ``fold``
     (the peeled triangles, vertex indices) only the boundary near them is tested (see PUSH_NEAR_MM); with ``hold`` too,
-    the map beyond that reach is held where it was (see SMALL_PUSH_HOLD). ``check()`` is called between the steps (it
-    raises to abandon the map)."""
+    the map beyond that reach is held where it was (see SMALL_PUSH_HOLD). ``fixed`` (bool (V,), e.g.
+    :func:`_beyond_reach`): vertices kept where they are, only the others solved (rule 46; no hold then). ``check()``
+    is called between the steps (it raises to abandon the map)."""
     bv, reach = _boundary_reach(f, PUSH_SKIP)
     near = _push_region(f, uv, fold)
     targets = _push_targets(f, bv, reach, near=near)
     pull = (bv, PUSH_WEIGHT, targets)
-    if hold and near is not None:
+    if hold and near is not None and fixed is None:
         pull = _held_beyond(f, uv, near, pull)
     tick = None if check is None else (lambda fraction: check())  # noqa: E731
     out, _ = arap(v, f, uv, max_iter=int(steps) or PUSH_STEPS, tol=0.0, progress=tick, injective=False, pairs=pairs,
                   boundary_weight=boundary_weight, boundary_only=boundary_only, similar=similar,
-                  scale_range=SIMILAR_SCALE, pull=pull)
+                  scale_range=SIMILAR_SCALE, pull=pull, fixed=fixed)
+    return out
+
+
+def _beyond_reach(f: np.ndarray, uv: np.ndarray, fold) -> np.ndarray | None:
+    """Bool (V,): the vertices of the flat map uv (V,2 mm) that no triangle within PUSH_NEAR_MM of a ``fold`` triangle
+    has (:func:`_push_region`); None when no fold is named."""
+    near = _push_region(f, uv, fold)
+    if near is None:
+        return None
+    out = np.ones(len(uv), bool)
+    out[f[near].ravel()] = False
     return out
 
 
@@ -2136,15 +2241,18 @@ def _pushed(cut, current: tuple, pairs, bonly, b2, s: float, check=None) -> tupl
 
 
 def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, similar, check=None, *,
-                steps: int, hold: bool = False) -> tuple:
+                steps: int, hold: bool = False, start: np.ndarray | None = None) -> tuple:
     """The flat map with its folds pushed apart (:func:`push_apart`, ``steps`` steps, the map beyond the folds held
     with ``hold``); ``current`` = (uv mm, kept and fold triangles, fold area mm^2, info) of the map so far, returned as
     it is or replaced by the pushed map's when that hides less in its folds and largest hole together (see
-    PUSH_FROM_MM2)."""
+    PUSH_FROM_MM2). ``start`` (V,2 mm): the map to push instead of current's (the map as drawn, rule 46), with only the
+    vertices near the folds solved; the pushed map's info then names the others (``_fixed``, bool (V,))."""
     uv, f_keep, f_fold, fold_mm2, info = current
     t0 = time.perf_counter()
-    pushed = push_apart(cut.v, cut.f, uv, pairs, bonly, weight, similar, check, fold=f_fold, steps=steps, hold=hold)
-    info2: dict = {}
+    fixed = None if start is None else _beyond_reach(cut.f, start, f_fold)
+    pushed = push_apart(cut.v, cut.f, uv if start is None else start, pairs, bonly, weight, similar, check,
+                        fold=f_fold, steps=steps, hold=hold, fixed=fixed)
+    info2: dict = {} if fixed is None else {"_fixed": fixed}
     u2, f_keep2, f_fold2 = settle_flat_map(cut, (pushed,), s, info2)
     fold2 = _area_mm2(cut.v, f_fold2)
     trace = {"push_mm2": [fold_mm2, fold2], "push_defect_mm2": [info["flat_defect_mm2"], info2["flat_defect_mm2"]],
