@@ -867,6 +867,37 @@ def test_arap_with_fixed_vertices_solves_only_the_others(monkeypatch):
     assert np.array_equal(none, arap(v, f, uv, injective=False, max_iter=5, tol=0.0)[0])
 
 
+def test_rule_46_pushes_the_map_as_drawn_and_leaves_it_beyond_the_fold(monkeypatch):
+    # the retry pushed from a given start map: only the map within PUSH_NEAR_MM of the fold moves, and the triangles
+    # beyond are those the map as it was kept (one peeled there stays peeled)
+    import StomachUnfoldLib.methods.isometric as iso
+
+    monkeypatch.setattr(iso, "PUSH_NEAR_MM", 6.0)
+    cut, current, fold, info0 = _peeled_disc_map()
+    u, f_keep, f_fold, _, info = current()
+    c = u[cut.f].mean(1)
+    far = np.linalg.norm(c[:, None] - u[f_fold].mean(1)[None], axis=2).min(1) > 15.0
+    gone = np.flatnonzero(far & np.isin(np.arange(len(cut.f)), _rows(cut.f, f_keep)))[0]
+    f_keep = f_keep[~np.all(f_keep == cut.f[gone], axis=1)]          # a far triangle the map as it was peeled
+    got = iso._push_retry(cut, (u, f_keep, f_fold, fold, info), None, None, 0.5, iso.BOUNDARY_WEIGHT, None,
+                          steps=20, hold=True, start=u)
+    assert got[4]["push_kept"] and got[3] < fold
+    fixed = got[4]["_fixed"]
+    assert 0.3 * len(u) < fixed.sum() < len(u)
+    assert np.array_equal(got[0][fixed], u[fixed])                   # beyond the reach: the start map to the bit
+    assert not np.all(got[1] == cut.f[gone], axis=1).any()           # the far peeled triangle is still peeled
+    # without a start map: rule 45's push, nothing fixed
+    assert "_fixed" not in iso._push_retry(cut, current(), None, None, 0.5, iso.BOUNDARY_WEIGHT, None, steps=20,
+                                           hold=True)[4]
+
+
+def _rows(f, sub):
+    """Indices of the rows of triangles ``f`` that appear in ``sub`` (the same vertex order)."""
+    n = int(f.max()) + 1
+    key = lambda t: (t[:, 0].astype(np.int64) * n + t[:, 1]) * n + t[:, 2]  # noqa: E731
+    return np.flatnonzero(np.isin(key(f), key(sub)))
+
+
 def test_the_strain_limit_leaves_fixed_vertices_where_they_are():
     # the pulled grid of the test below: the limit moves only the vertices not fixed, and a map whose stretched
     # triangles are all fixed comes back as it was, with its stretched triangles counted
