@@ -980,9 +980,8 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     turns over (:func:`undo_turned`), wholly if one is still turned; the sweeps then finish what it leaves. After
     it, every STRETCH_CHECK_EVERY sweeps and at the end, the map is kept if it has fewer triangles over the limit
     than the best so far, no boundary crossing itself that the input did not have, and no more edges (springs)
-    longer than ``limit`` times their rest length; the input if none is. ``fixed`` (bool (V,)): vertices that stay
-    where they are (the global step solves the others, the sweeps move only them). Returns (uv mm, a copy; info:
-    triangles over the limit before and after, global rounds, sweeps, largest move in mm).
+    longer than ``limit`` times their rest length; the input if none is. ``fixed`` (bool (V,)): vertices left where
+    they are. Returns (uv mm, a copy; info: triangles over the limit before and after, global rounds, sweeps, move mm).
     """
     limit = STRETCH_LIMIT if limit is None else float(limit)
     sweeps = STRETCH_SWEEPS if sweeps is None else int(sweeps)
@@ -997,8 +996,8 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     out = uv0.copy()
     nv = len(out)
     sign0 = np.sign(signed_area_2d(out, fg))
-    # the triangles the limit can move: all, or with ``fixed`` those with a corner not fixed
-    movable = np.ones(len(fg), bool) if fixed is None else ~np.asarray(fixed, bool)[fg].all(1)
+    movable = np.ones(len(fg), bool) if fixed is None else ~np.asarray(fixed, bool)[fg].all(1)   # a corner free
+    movable_v = np.ones(nv, bool) if fixed is None else ~np.asarray(fixed, bool)
     incident = np.bincount(fg.ravel(), minlength=nv)
     vt_ptr = np.concatenate([[0], np.cumsum(incident)])          # vertex -> its triangles (CSR)
     vt_idx = np.argsort(fg.ravel(), kind="stable") // 3
@@ -1062,8 +1061,7 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
         idx = fg[bad].ravel()
         vs = np.unique(idx)
         step = np.stack([np.bincount(idx, d[:, k], nv)[vs] for k in range(2)], 1) / incident[vs][:, None]
-        if fixed is not None:
-            step[fixed[vs]] = 0.0
+        step[~movable_v[vs]] = 0.0
         near = np.unique(np.concatenate([vt_idx[vt_ptr[i]:vt_ptr[i + 1]] for i in vs]))   # triangles that move
         old = out[vs].copy()
         out[vs] += step
