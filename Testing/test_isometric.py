@@ -798,17 +798,19 @@ def test_under_rule_44_the_small_push_waits_beside_the_map(monkeypatch):
     assert big[4]["push_kept"] and "_small_push" not in big[4]
 
 
-@pytest.mark.parametrize("near_mm,local", [(None, False), (20.0, False), (20.0, True)])
-def test_under_rules_44_to_46_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch, near_mm, local):
+@pytest.mark.parametrize("near_mm,local,finish", [(None, False, False), (20.0, False, False), (20.0, True, False),
+                                                   (20.0, True, True)])
+def test_under_rules_44_to_47_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch, near_mm, local, finish):
     # the tiny J's fold taken as a small one: both maps drawn, the one whose view shows more lumen-edge points kept
-    # (rule 44: points of the whole wall; rule 45: those in a box round the fold; rule 46: the push solved near it)
+    # (rule 44: points of the whole wall; rule 45: those in a box round the fold; rule 46: the push solved near it;
+    # rule 47: its strain limit on the sub-mesh near it)
     import StomachUnfoldLib.methods.isometric as iso
     from StomachUnfoldLib.quality import visible_points
     from StomachUnfoldLib.view import first_hit
 
     for name, value in (("PUSH_FROM_MM2", 1e9), ("SMALL_PUSH_STEPS", 20), ("SMALL_PUSH_HOLD", True),
                         ("SMALL_PUSH_BY_VIEW", True), ("FLIP_DEGREES", ()), ("VIEW_CHECK_NEAR_MM", near_mm),
-                        ("PUSH_LOCAL", local)):
+                        ("PUSH_LOCAL", local), ("LOCAL_FINISH", finish)):
         monkeypatch.setattr(iso, name, value)
     ct, truth = make_phantom("j", "tiny")
     res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
@@ -922,6 +924,32 @@ def test_the_strain_limit_leaves_fixed_vertices_where_they_are():
     same, info2 = limit_stretch(v, f, uv, fixed=stuck)
     assert np.array_equal(same, uv)
     assert info2["stretched_triangles"] == info2["stretched_triangles_before"] > 0
+
+
+@pytest.mark.parametrize("finish", [False, True])
+def test_the_pushed_maps_limit_near_the_fold_keeps_the_rest_or_falls_back_to_the_whole_map(monkeypatch, finish):
+    # rules 46 (the whole mesh, fixed vertices) and 47 (the sub-mesh of the triangles with a free corner)
+    import StomachUnfoldLib.methods.isometric as iso
+
+    monkeypatch.setattr(iso, "LOCAL_FINISH", finish)
+    v, f, g, uv, pulled = _pulled_grid()
+    fixed = np.linalg.norm(g - g[pulled], axis=1) > 6.0
+    out, info = iso._limit_near(v, f, uv, fixed)
+    assert info["stretch_local"] and np.array_equal(out[fixed], uv[fixed])
+    assert stretch_stats(v, f, out)["stretch_max"] <= 1.5
+    # a free part too small to take the stretch (only the pulled vertex's far neighbour free): rule 46 limits the
+    # whole map; rule 47 says so and leaves it (the pushed map is then dropped)
+    tight = np.ones(len(g), bool)
+    tight[pulled + 1] = False
+    out2, info2 = iso._limit_near(v, f, uv, tight)
+    assert not info2["stretch_local"]
+    if finish:
+        assert stretch_stats(v, f, out2)["stretch_max"] > 1.5 and np.array_equal(out2[tight], uv[tight])
+    else:
+        assert np.array_equal(out2, limit_stretch(v, f, uv)[0]) and stretch_stats(v, f, out2)["stretch_max"] <= 1.5
+    # the guard reads a largest stretch it is given instead of measuring it
+    assert iso.hold_within_limit(v, f, g, top=3.0)[1] == pytest.approx(1.5 * iso.STRETCH_MARGIN / 3.0)
+    assert iso.hold_within_limit(v, f, uv, top=1.0)[1] == 1.0
 
 
 def test_rule_45_counts_the_wall_near_the_fold_only(monkeypatch):

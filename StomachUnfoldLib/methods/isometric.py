@@ -230,6 +230,13 @@ VIEW_CHECK_NEAR_MM = None
 #: point), but the small stomachs' median time rose 13.9 %: the local limit held on 5 of 38 pushes, and a pushed map
 #: costs 0.3-0.4 s beyond its solve and limit (its settle, guard, second view and count).
 PUSH_LOCAL = False
+#: Rule 47 (docs/RULE47_small_push_finished_near.md): under rule 46, the pushed map's strain limit is solved on the
+#: sub-mesh of the triangles with a corner not fixed (LOCAL_LIMIT_SOLVES global rounds, LOCAL_LIMIT_SWEEPS sweeps);
+#: where that leaves a triangle over the limit the pushed map is dropped (the map as it was is kept), not limited
+#: whole; its stretch figures are made once, before it is turned (the guard reads them). False: rule 46's finish.
+LOCAL_FINISH = False
+LOCAL_LIMIT_SOLVES = 30
+LOCAL_LIMIT_SWEEPS = 100
 HOLD_WEIGHT = 1000.0
 PUSH_SKIP = 8
 PUSH_WEIGHT = 10.0
@@ -575,7 +582,7 @@ def _fixed_factor(f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float,
                   fixed: np.ndarray, uv0: np.ndarray) -> tuple:
     """ARAP's system (with ``pull``'s weights on its vertices' diagonal) restricted to the vertices not ``fixed``
     (bool (V,)): (LU factors, the free vertices' indices, the fixed vertices' part of the free rows (n_free,2), from
-    their places in uv0 (V,2 mm), to subtract from the right-hand side); SimulationError when it cannot be factorised."""
+    their places in uv0 (V,2 mm), to subtract from the right-hand side); SimulationError if it cannot be factorised."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.linalg import splu
 
@@ -1085,19 +1092,20 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
                  "stretch_solves": solves, "stretch_move_mm": moved}
 
 
-def hold_within_limit(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | None = None
-                      ) -> tuple[np.ndarray, float]:
+def hold_within_limit(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | None = None,
+                      top: float | None = None) -> tuple[np.ndarray, float]:
     """Guarantee no triangle of a flat map (V,2 mm) of a mesh (v LPS mm, f) is stretched over ``limit`` (s1).
 
     The last resort after :func:`limit_stretch`: if a triangle is still over the limit, the whole map is scaled about
     its centroid so that the most stretched one comes to STRETCH_MARGIN x the limit. A uniform scale turns and folds
     nothing and scales every triangle's singular values and every spring's length alike, so afterwards none is over;
-    the price is that every length on the view reads that much short. Returns (uv mm; the scale, 1.0 when the map
-    was already within the limit and comes back unchanged).
+    the price is that every length on the view reads that much short. ``top``: the map's largest stretch when known
+    (else measured). Returns (uv mm; the scale, 1.0 when the map was already within the limit and comes back unchanged).
     """
     limit = STRETCH_LIMIT if limit is None else float(limit)
     uv = np.asarray(uv, float)
-    top = stretch_stats(v, f, uv)["stretch_max"] if len(f) else 0.0
+    if top is None:
+        top = stretch_stats(v, f, uv)["stretch_max"] if len(f) else 0.0
     if not top > limit:
         return uv, 1.0
     scale = limit * STRETCH_MARGIN / top
@@ -1891,7 +1899,8 @@ def _finish(cut, flat: tuple, s: float) -> _Drawn:
     """The flat map ``flat`` = (uv mm, kept and fold triangles, fold area mm^2, info) made ready to draw: its peeled
     triangles dropped, its strain limited and held within STRETCH_LIMIT, turned rigidly to the view's axes (pixel
     ``s`` mm). Info's ``_fixed`` (bool (V,), rule 46): vertices the strain limit leaves where they are, unless the
-    others cannot take the stretch (a triangle left over STRETCH_LIMIT): then the whole map is limited."""
+    others cannot take the stretch (a triangle left over STRETCH_LIMIT): then the whole map is limited, or with
+    LOCAL_FINISH (rule 47) None is returned (the pushed map is not drawn)."""
     uv, f_keep, f_fold, fold_mm2, info = flat
     info, warnings = dict(info), []
     fixed = info.pop("_fixed", None)
@@ -1905,30 +1914,53 @@ def _finish(cut, flat: tuple, s: float) -> _Drawn:
     if info["peeled_triangles"] or info["peeled_overlap_triangles"]:
         used = np.unique(f_keep)
         cut, uv = _with_faces(cut, f_keep, uv)
-    start = uv
-    uv, info_st = limit_stretch(cut.v, cut.f, uv, fixed=None if fixed is None else
-                                (fixed if used is None else fixed[used]))
-    if fixed is not None:
-        info_st["stretch_local"] = not info_st["stretched_triangles"]
-        if info_st["stretched_triangles"]:      # the part it may move could not take the stretch: the whole map
-            uv, info_st = limit_stretch(cut.v, cut.f, start)
-            info_st["stretch_local"] = False
+    if fixed is None:
+        uv, info_st = limit_stretch(cut.v, cut.f, uv)
+    else:
+        uv, info_st = _limit_near(cut.v, cut.f, uv, fixed if used is None else fixed[used])
+        if LOCAL_FINISH and not info_st["stretch_local"]:
+            return None                         # rule 47: a pushed map whose part near the fold cannot take the stretch
     info.update(info_st)
     limited = uv.copy() if used is None else np.array(full_uv, float, copy=True)
     if used is not None:
         limited[used] = uv                      # the whole cut's map as limited (peeled flaps as they were)
-    uv, info["stretch_guard_scale"] = hold_within_limit(cut.v, cut.f, uv)
+    st = stretch_stats(cut.v, cut.f, uv) if fixed is not None and LOCAL_FINISH else None   # rule 47: made once
+    uv, info["stretch_guard_scale"] = hold_within_limit(cut.v, cut.f, uv, top=None if st is None else st["stretch_max"])
     if info["stretch_guard_scale"] < 1.0:
         warnings.append(f"the strain limit left a triangle over {STRETCH_LIMIT:g}x: the whole flat map was "
                         f"scaled by {info['stretch_guard_scale']:.3f}, so lengths on the view read "
                         f"{100 * (1 - info['stretch_guard_scale']):.1f} % short (see the distortion map)")
     uv, flipped_frac = orient_rigid(uv, cut, s)
-    st = stretch_stats(cut.v, cut.f, uv)
+    if st is None or info["stretch_guard_scale"] < 1.0:
+        st = stretch_stats(cut.v, cut.f, uv)
     sa = signed_area_2d(uv, cut.f)
     info["flipped_final"] = int(np.sum(np.sign(sa) != (np.sign(np.sum(np.sign(sa))) or 1.0)))
     if info["flipped_final"]:
         warnings.append(f"the flat map has {info['flipped_final']} flipped triangles")
     return _Drawn(cut, uv, info, st, flipped_frac, hidden, warnings, limited)
+
+
+def _limit_near(v: np.ndarray, f: np.ndarray, uv: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The strain limit (:func:`limit_stretch`) of a flat map uv (V,2 mm) moving only the vertices not ``fixed`` (bool
+    (V,)): over the whole mesh (rule 46; the whole map limited instead where that leaves a triangle over
+    STRETCH_LIMIT), or with LOCAL_FINISH on the sub-mesh of the triangles with a corner not fixed, with fewer rounds
+    (rule 47; what it leaves is left). Returns (uv mm, info with ``stretch_local``: whether the local limit left no
+    triangle over)."""
+    if LOCAL_FINISH:
+        fs = f[~fixed[f].all(1)]
+        sub = np.unique(fs)
+        remap = np.full(len(uv), -1, np.int64)
+        remap[sub] = np.arange(len(sub))
+        out = np.array(uv, float, copy=True)
+        out[sub], info = limit_stretch(v[sub], remap[fs], out[sub], fixed=fixed[sub], sweeps=LOCAL_LIMIT_SWEEPS,
+                                       solves=LOCAL_LIMIT_SOLVES)
+    else:
+        out, info = limit_stretch(v, f, uv, fixed=fixed)
+    info["stretch_local"] = not info["stretched_triangles"]
+    if info["stretched_triangles"] and not LOCAL_FINISH:
+        out, info = limit_stretch(v, f, uv)     # the part it may move could not take the stretch: the whole map
+        info["stretch_local"] = False
+    return out, info
 
 
 def _drawn(prep, d: _Drawn, report=None) -> _Drawn:
@@ -1964,8 +1996,10 @@ def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
         flat = push(check=check, start=drawn.limited) if PUSH_LOCAL else push(check=check)
         trace.update({k: flat[4][k] for k in ("push_mm2", "push_defect_mm2", "push_seconds", "push_steps",
                                               "push_held")})
-        if flat[4]["push_kept"]:
-            pushed = _drawn(prep, _finish(cut, flat, prep.pixel_mm))
+        finished = _finish(cut, flat, prep.pixel_mm) if flat[4]["push_kept"] else None
+        trace["small_push_finished"] = finished is not None
+        if finished is not None:
+            pushed = _drawn(prep, finished)
             counts[1] = shown(pushed)
             if counts[1] > counts[0]:
                 keep, trace["small_push_kept"] = pushed, True
