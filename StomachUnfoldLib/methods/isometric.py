@@ -1898,7 +1898,7 @@ class _Drawn:
     view: tuple | None = None
 
 
-def _finish(cut, flat: tuple, s: float) -> _Drawn:
+def _finish(cut, flat: tuple, s: float) -> _Drawn | None:
     """The flat map ``flat`` = (uv mm, kept and fold triangles, fold area mm^2, info) made ready to draw: its peeled
     triangles dropped, its strain limited and held within STRETCH_LIMIT, turned rigidly to the view's axes (pixel
     ``s`` mm). Info's ``_fixed`` (bool (V,), rule 46): vertices the strain limit leaves where they are, unless the
