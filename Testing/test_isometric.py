@@ -879,7 +879,7 @@ def test_rule_46_pushes_the_map_as_drawn_and_leaves_it_beyond_the_fold(monkeypat
     u, f_keep, f_fold, _, info = current()
     c = u[cut.f].mean(1)
     far = np.linalg.norm(c[:, None] - u[f_fold].mean(1)[None], axis=2).min(1) > 15.0
-    gone = np.flatnonzero(far & np.isin(np.arange(len(cut.f)), _rows(cut.f, f_keep)))[0]
+    gone = np.flatnonzero(far & iso._rows_in(cut.f, f_keep))[0]
     f_keep = f_keep[~np.all(f_keep == cut.f[gone], axis=1)]          # a far triangle the map as it was peeled
     got = iso._push_retry(cut, (u, f_keep, f_fold, fold, info), None, None, 0.5, iso.BOUNDARY_WEIGHT, None,
                           steps=20, hold=True, start=u)
@@ -891,13 +891,6 @@ def test_rule_46_pushes_the_map_as_drawn_and_leaves_it_beyond_the_fold(monkeypat
     # without a start map: rule 45's push, nothing fixed
     assert "_fixed" not in iso._push_retry(cut, current(), None, None, 0.5, iso.BOUNDARY_WEIGHT, None, steps=20,
                                            hold=True)[4]
-
-
-def _rows(f, sub):
-    """Indices of the rows of triangles ``f`` that appear in ``sub`` (the same vertex order)."""
-    n = int(f.max()) + 1
-    key = lambda t: (t[:, 0].astype(np.int64) * n + t[:, 1]) * n + t[:, 2]  # noqa: E731
-    return np.flatnonzero(np.isin(key(f), key(sub)))
 
 
 def _pulled_grid():

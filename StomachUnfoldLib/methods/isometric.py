@@ -278,6 +278,18 @@ BRIDGE_GUARD_MM2 = LIGHT_DEFECT_MM2
 BRIDGE_GROW_MM = 0.5 * BRIDGE_BALL_MM
 
 
+def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Bool (N,): which rows of the (N,3) non-negative int array a (vertex indices of triangles) are rows of b, in the
+    same order (rows of one mesh's f keep their vertex order when peeled or dropped)."""
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    n = int(max(a.max(initial=0), b.max(initial=0))) + 1
+
+    def key(t):
+        return (t[:, 0] * n + t[:, 1]) * n + t[:, 2]
+
+    return np.isin(key(a), key(b)) if len(a) else np.zeros(0, bool)
+
+
 def _unique_rows(e: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
     """np.unique(e, axis=0) for (N,2) non-negative int rows, through one sorted int64 key per row (much faster)."""
     e = np.asarray(e, np.int64)
@@ -574,11 +586,30 @@ def _arap_factor(factors: dict | None, f: np.ndarray, w: np.ndarray, nv: int, bo
     :func:`_add_pull`) its proximal weight added on the pulled vertices' diagonal and factorised apart."""
     if pull is None:
         return _stored_factor(factors, f, w, nv, boundary_weight, boundary_only, pairs)
+    return _pinned_factor(_pulled_system(f, w, nv, boundary_weight, boundary_only, pairs, pull).tocsc(), f)
+
+
+def _pulled_system(f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float, boundary_only, pairs, pull):
+    """ARAP's system matrix (:func:`_system_matrix`, sparse V x V) with ``pull``'s weights (see :func:`_add_pull`)
+    added on its vertices' diagonal; the plain system when ``pull`` is None."""
     from scipy.sparse import coo_matrix
 
+    M = _system_matrix(f, w, nv, boundary_weight, boundary_only, pairs)
+    if pull is None:
+        return M
     pv = np.asarray(pull[0], np.int64)
-    D = coo_matrix((np.full(len(pv), 1.0) * np.asarray(pull[1], float), (pv, pv)), shape=(nv, nv))
-    return _pinned_factor((_system_matrix(f, w, nv, boundary_weight, boundary_only, pairs) + D).tocsc(), f)
+    return M + coo_matrix((np.full(len(pv), 1.0) * np.asarray(pull[1], float), (pv, pv)), shape=(nv, nv))
+
+
+def _factorised(A):
+    """LU factors (splu, symmetric mode) of a sparse ARAP system A; SimulationError when it cannot be factorised."""
+    from scipy.sparse.linalg import splu
+
+    try:
+        return splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError as e:
+        raise SimulationError(f"the ARAP system of the surface could not be factorised ({e}); the mesh is "
+                              "broken") from e
 
 
 def _fixed_factor(f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float, boundary_only, pairs, pull,
@@ -586,27 +617,13 @@ def _fixed_factor(f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float,
     """ARAP's system (with ``pull``'s weights on its vertices' diagonal) restricted to the vertices not ``fixed``
     (bool (V,)): (LU factors, the free vertices' indices, the fixed vertices' part of the free rows (n_free,2), from
     their places in uv0 (V,2 mm), to subtract from the right-hand side); SimulationError if it cannot be factorised."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.linalg import splu
-
-    M = _system_matrix(f, w, nv, boundary_weight, boundary_only, pairs)
-    if pull is not None:
-        pv = np.asarray(pull[0], np.int64)
-        M = M + coo_matrix((np.full(len(pv), 1.0) * np.asarray(pull[1], float), (pv, pv)), shape=(nv, nv))
-    M = M.tocsr()
     fixed = np.asarray(fixed, bool)
     free = np.flatnonzero(~fixed)
     if not len(free):
         raise SimulationError("every vertex of the flat map is fixed: nothing to solve")
-    Mf = M[free]
-    try:
-        lu = splu(Mf[:, free].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
-    except RuntimeError as e:
-        raise SimulationError(f"the ARAP system of the surface could not be factorised ({e}); the mesh is "
-                              "broken") from e
+    Mf = _pulled_system(f, w, nv, boundary_weight, boundary_only, pairs, pull).tocsr()[free]
     held = np.flatnonzero(fixed)
-    return lu, free, np.asarray(Mf[:, held] @ np.asarray(uv0, float)[held])
+    return _factorised(Mf[:, free]), free, np.asarray(Mf[:, held] @ np.asarray(uv0, float)[held])
 
 
 def _add_pull(pull: tuple, uv: np.ndarray, b: np.ndarray) -> float:
@@ -671,19 +688,11 @@ def _system_matrix(f: np.ndarray, w: np.ndarray, nv: int, boundary_weight: float
 def _pinned_factor(L, f: np.ndarray):
     """LU factors of the Laplacian L (V x V) with its most connected vertex pinned: (lu, pin, kept bool (V,), the pinned
     column of the kept rows); SimulationError when it cannot be factorised."""
-    from scipy.sparse.linalg import splu
-
     nv = L.shape[0]
     pin = int(np.argmax(np.bincount(f.ravel(), minlength=nv)))
     keep = np.ones(nv, bool)
     keep[pin] = False
-    try:
-        lu = splu(L[keep][:, keep].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
-    except RuntimeError as e:
-        raise SimulationError(f"the ARAP system of the surface could not be factorised ({e}); the mesh is "
-                              "broken") from e
-    return lu, pin, keep, L[:, pin].toarray().ravel()[keep]
+    return _factorised(L[keep][:, keep]), pin, keep, L[:, pin].toarray().ravel()[keep]
 
 
 def _ends_matrix(heads: np.ndarray, tails: np.ndarray, nv: int):
@@ -1006,8 +1015,8 @@ def limit_stretch(v: np.ndarray, f: np.ndarray, uv: np.ndarray, limit: float | N
     out = uv0.copy()
     nv = len(out)
     sign0 = np.sign(signed_area_2d(out, fg))
-    movable = np.ones(len(fg), bool) if fixed is None else ~np.asarray(fixed, bool)[fg].all(1)   # a corner free
     movable_v = np.ones(nv, bool) if fixed is None else ~np.asarray(fixed, bool)
+    movable = movable_v[fg].any(1)                                # the triangles with a corner free
     incident = np.bincount(fg.ravel(), minlength=nv)
     vt_ptr = np.concatenate([[0], np.cumsum(incident)])          # vertex -> its triangles (CSR)
     vt_idx = np.argsort(fg.ravel(), kind="stable") // 3
@@ -1222,6 +1231,7 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
         Af = A[free]
         fixed_rhs = np.asarray(Af[:, hold] @ uv_in[hold])
         A = Af[:, free].tocsc()
+        movable = ~np.asarray(fixed, bool)[f].all(1)                    # a triangle it cannot move is left
     try:
         lu = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:
@@ -1238,7 +1248,7 @@ def _global_strain_limit(f: np.ndarray, x: np.ndarray, Ainv: np.ndarray, uv: np.
         s2 = s2 * np.sign(det) * orientation                            # < 0: turned over
         bad = (s1 > goal) | (s2 < STRETCH_SHRINK_MIN)
         if fixed is not None:
-            bad &= ~np.asarray(fixed, bool)[f].all(1)                   # a triangle it cannot move is left
+            bad &= movable
         if not bad.any():
             return y, n
         U, S, Vt = np.linalg.svd(J[bad])
@@ -1883,8 +1893,8 @@ class IsometricFlattening(Method):
 class _Drawn:
     """A kept flat map on its way to the view: the cut surface (its peeled triangles dropped), the map (uv mm), its
     report section, stretch figures, the fraction orient_rigid found flipped, the peeled folds' mucosa (LPS mm, or
-    None), its warnings, the map of the whole cut surface (V,2 mm, its peeled triangles' vertices too) as its strain
-    limit left it, before it was turned (rule 46's push starts there), and once sampled, the view (volume,
+    None), its warnings, under PUSH_LOCAL the map of the whole cut surface (V,2 mm, its peeled triangles' vertices too)
+    as its strain limit left it, before it was turned (rule 46's push starts there), and once sampled, the view (volume,
     to_unfolded, to_original, mesh, sampling info)."""
 
     cut: object
@@ -1924,9 +1934,11 @@ def _finish(cut, flat: tuple, s: float) -> _Drawn | None:
         if LOCAL_FINISH and not info_st["stretch_local"]:
             return None                         # rule 47: a pushed map whose part near the fold cannot take the stretch
     info.update(info_st)
-    limited = uv.copy() if used is None else np.array(full_uv, float, copy=True)
-    if used is not None:
-        limited[used] = uv                      # the whole cut's map as limited (peeled flaps as they were)
+    limited = None
+    if PUSH_LOCAL:                              # rule 46's push starts there: the whole cut's map as limited
+        limited = uv.copy() if used is None else np.array(full_uv, float, copy=True)
+        if used is not None:
+            limited[used] = uv                  # (peeled flaps as they were)
     st = stretch_stats(cut.v, cut.f, uv) if fixed is not None and LOCAL_FINISH else None   # rule 47: made once
     uv, info["stretch_guard_scale"] = hold_within_limit(cut.v, cut.f, uv, top=None if st is None else st["stretch_max"])
     if info["stretch_guard_scale"] < 1.0:
@@ -2303,9 +2315,7 @@ def _push_retry(cut, current: tuple, pairs, bonly, s: float, weight: float, simi
     if fixed is not None:
         # beyond the reach the map is the map as drawn: so are its triangles (one the map as it was peeled there,
         # stretched at the boundary, stays peeled)
-        n = np.int64(len(start))
-        key = lambda t: (t[:, 0] * n + t[:, 1]) * n + t[:, 2]  # noqa: E731 (rows of cut.f keep their order)
-        new_far = fixed[f_keep2].all(1) & ~np.isin(key(f_keep2.astype(np.int64)), key(f_keep.astype(np.int64)))
+        new_far = fixed[f_keep2].all(1) & ~_rows_in(f_keep2, f_keep)
         if new_far.any():
             f_keep2 = f_keep2[~new_far]
             info2["flat_defect_mm2"] = largest_defect_mm2(u2, f_keep2, s)
