@@ -238,6 +238,12 @@ PUSH_LOCAL = False
 #: real CT 01 lost 0.29 point of visible mucosa: on its small map the push moved nearly the whole view, beyond the
 #: box the check counts.
 LOCAL_FINISH = False
+#: Rule 48 (docs/RULE48_small_push_checked_where_moved.md): under rule 47, once the pushed map is drawn, its view and
+#: the view as it was are compared on the lumen-edge points in the box round the fold's mucosa and every vertex the
+#: push moved by more than VIEW_CHECK_MOVED_PX view pixels after the best rigid fit of the two maps (the whole wall
+#: where the two maps do not share their vertices), not on the fold's box alone. Rule 47's push on real CT 01's small
+#: map moved the whole view 2-7 mm and lost 0.29 point of visible mucosa outside the box. None: rule 47's box.
+VIEW_CHECK_MOVED_PX = None
 LOCAL_LIMIT_SOLVES = 30
 LOCAL_LIMIT_SWEEPS = 100
 HOLD_WEIGHT = 1000.0
@@ -2015,6 +2021,12 @@ def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
         trace["small_push_finished"] = finished is not None
         if finished is not None:
             pushed = _drawn(prep, finished)
+            if VIEW_CHECK_MOVED_PX is not None:  # rule 48: counted wherever the push moved the map
+                moved = _moved_lps(drawn, pushed, float(VIEW_CHECK_MOVED_PX) * prep.pixel_mm)
+                pts = _check_points(prep, None if moved is None else np.concatenate([drawn.hidden, moved]),
+                                    whole=moved is None)
+                counts[0] = shown(drawn)
+                trace["small_push_points"] = int(len(pts))
             counts[1] = shown(pushed)
             if counts[1] > counts[0]:
                 keep, trace["small_push_kept"] = pushed, True
@@ -2022,20 +2034,43 @@ def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
     return keep
 
 
-def _check_points(prep, hidden_lps: np.ndarray | None) -> np.ndarray:
+def _check_points(prep, hidden_lps: np.ndarray | None, whole: bool = False) -> np.ndarray:
     """The lumen-edge points (LPS mm, quality.mucosa_points, at most VIEW_CHECK_POINTS picked by position) that
-    _shown_more counts: the whole wall's (rule 44), or with VIEW_CHECK_NEAR_MM (rule 45) those in the box round the
-    peeled fold's mucosa ``hidden_lps`` (LPS mm) grown by that margin (mm), drawn on that part of the lumen alone."""
+    _shown_more counts: the whole wall's (rule 44, or ``whole``), or with VIEW_CHECK_NEAR_MM (rule 45) those in the
+    box round the peeled fold's mucosa ``hidden_lps`` (LPS mm) grown by that margin (mm), drawn on that part of the
+    lumen alone."""
     from ..quality import mucosa_points
 
     lum, cl = prep.lumen_crop, np.asarray(prep.centerline.points_lps)
-    if VIEW_CHECK_NEAR_MM is not None:
+    if VIEW_CHECK_NEAR_MM is not None and not whole:
         if hidden_lps is None or not len(hidden_lps):
             return np.zeros((0, 3))
         ijk = lum.lps_to_index(np.asarray(hidden_lps, float))
         grow = float(VIEW_CHECK_NEAR_MM) / np.asarray(lum.spacing, float)
         lum = lum.crop(np.floor(ijk.min(0) - grow), np.ceil(ijk.max(0) + grow) + 1)
     return mucosa_points(lum, cl, max_points=VIEW_CHECK_POINTS, sample="hash")
+
+
+def _moved_lps(before: _Drawn, after: _Drawn, tol_mm: float) -> np.ndarray | None:
+    """The wall (LPS mm) of the vertices that map ``after`` moved by more than ``tol_mm`` (mm in the view) from map
+    ``before`` of the same cut surface, after the best fit of one onto the other by a turn, a mirror and a shift
+    (each map is turned to the view's axes on its own); a vertex in the triangles of one map alone counts as moved.
+    None where the two maps do not number the same vertices."""
+    a, b = np.asarray(before.uv, float), np.asarray(after.uv, float)
+    if a.shape != b.shape or len(before.cut.v) != len(after.cut.v):
+        return None
+    in_a = np.zeros(len(a), bool)
+    in_a[np.unique(before.cut.f)] = True
+    in_b = np.zeros(len(b), bool)
+    in_b[np.unique(after.cut.f)] = True
+    both = in_a & in_b
+    if both.sum() < 3:
+        return None
+    ca, cb = a[both].mean(0), b[both].mean(0)
+    u, _, vt = np.linalg.svd((b[both] - cb).T @ (a[both] - ca))
+    fit = (b - cb) @ (u @ vt) + ca                       # after, laid on before (orthogonal Procrustes)
+    moved = (in_a != in_b) | (both & (np.linalg.norm(fit - a, axis=1) > tol_mm))
+    return np.asarray(after.cut.v, float)[moved]
 
 
 def _bridged(cut: IsoSurface) -> IsoSurface:
