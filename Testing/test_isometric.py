@@ -1412,3 +1412,94 @@ def test_a_flap_left_after_the_push_is_turned_about_its_hinge_and_kept_when_it_h
     assert m["flip_kept"] == (120.0 if hid < m["flip_from_mm2"] else None)
     assert m["hidden_fold_mm2"] + m["flat_defect_mm2"] == pytest.approx(min(hid, m["flip_from_mm2"]))
     assert m["flip_kept"] == 120.0                      # the tiny J: 103 -> 56 mm^2 here
+
+
+def test_the_vertices_a_push_moved_are_found_after_the_best_turn_mirror_and_shift():
+    # rule 48: the pushed map is turned to the view's axes on its own; a turned, mirrored and shifted copy of the map
+    # with two vertices moved gives those two (and a vertex only the pushed map's triangles use), nothing else
+    import StomachUnfoldLib.methods.isometric as iso
+
+    nu, nv = 12, 9
+    g = np.stack(np.meshgrid(np.arange(nu) * 2.0, np.arange(nv) * 2.0, indexing="ij"), -1).reshape(-1, 2)
+    f = _grid(nu, nv)
+    v = np.c_[g, 0.1 * g[:, 0] ** 1.5]
+
+    def drawn(uv, tris):
+        return iso._Drawn(cut=SimpleNamespace(v=v, f=tris), uv=uv, info={}, stretch={}, flipped_fraction=0.0,
+                          hidden=None, warnings=[])
+
+    t = np.radians(37.0)
+    turn = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]) @ np.diag([1.0, -1.0])   # a turn and a mirror
+    moved = g.copy()
+    moved[[20, 61]] += [[1.5, 0.0], [0.0, -2.0]]
+    after = moved @ turn.T + [40.0, -7.0]
+    peeled = f[~(f == 0).any(1)]                               # the map as it was peeled the triangles at vertex 0
+    before = drawn(g, peeled)
+    got = iso._moved_lps(before, drawn(after, f), 0.5)
+    assert {tuple(x) for x in got} == {tuple(v[i]) for i in (0, 20, 61)}
+    assert iso._moved_lps(before, drawn(g @ turn.T, peeled), 0.5).shape == (0, 3)   # a turned copy: nothing moved
+    assert iso._moved_lps(before, drawn(g[:-1], peeled), 0.5) is None               # different vertices: unknown
+
+
+def test_rule_49_matches_the_two_maps_vertices_by_their_place_not_their_number(monkeypatch):
+    # each drawn map drops its unused vertices and numbers the rest afresh (_with_faces); rule 49 matches them by place
+    # and unwrapped angle: the same moved set as by number, and a cut copy (same place, angle + 2 pi) is its own vertex
+    import StomachUnfoldLib.methods.isometric as iso
+
+    monkeypatch.setattr(iso, "MOVED_BY_PLACE", True)
+    nu, nv = 12, 9
+    g = np.stack(np.meshgrid(np.arange(nu) * 2.0, np.arange(nv) * 2.0, indexing="ij"), -1).reshape(-1, 2)
+    f = _grid(nu, nv)
+    v = np.c_[g, 0.1 * g[:, 0] ** 1.5]
+    theta = g[:, 1] / 20.0
+    peeled = f[~(f == 0).any(1)] - 1                           # vertex 0 unused, dropped, the rest numbered from 0
+    before = iso._Drawn(cut=SimpleNamespace(v=v[1:], f=peeled, theta=theta[1:]), uv=g[1:], info={}, stretch={},
+                        flipped_fraction=0.0, hidden=None, warnings=[])
+    moved = g.copy()
+    moved[[20, 61]] += [[1.5, 0.0], [0.0, -2.0]]
+    after = iso._Drawn(cut=SimpleNamespace(v=v, f=f, theta=theta), uv=moved[:, ::-1] + 3.0, info={}, stretch={},
+                       flipped_fraction=0.0, hidden=None, warnings=[])
+    got = iso._moved_lps(before, after, 0.5)
+    assert {tuple(x) for x in got} == {tuple(v[i]) for i in (0, 20, 61)}
+    monkeypatch.setattr(iso, "MOVED_BY_PLACE", False)
+    assert iso._moved_lps(before, after, 0.5) is None                               # rule 48: numbered apart
+    seam = SimpleNamespace(v=np.r_[v, v[5:6]], theta=np.r_[theta, theta[5] + 2 * np.pi])
+    assert np.array_equal(iso._same_vertices(seam, SimpleNamespace(v=seam.v[::-1], theta=seam.theta[::-1])),
+                          np.arange(len(seam.v))[::-1])
+    assert iso._same_vertices(seam, SimpleNamespace(v=v[:3], theta=theta[:3] + 1.0)).tolist() == [-1, -1, -1]
+
+
+@pytest.mark.parametrize("by_place", [False, True])
+def test_rules_48_and_49_count_wherever_the_push_moved_the_map(monkeypatch, by_place):
+    # the tiny J's fold taken as a small one under rule 47, then rule 48 (49: its vertices matched by place, the points
+    # near the moved ones): the views are compared on at least rule 47's box's points, and the count kept is the kept
+    # view's own
+    import StomachUnfoldLib.methods.isometric as iso
+    from StomachUnfoldLib.quality import visible_points
+    from StomachUnfoldLib.view import first_hit
+
+    for name, value in (("PUSH_FROM_MM2", 1e9), ("SMALL_PUSH_STEPS", 20), ("SMALL_PUSH_HOLD", True),
+                        ("SMALL_PUSH_BY_VIEW", True), ("FLIP_DEGREES", ()), ("VIEW_CHECK_NEAR_MM", 20.0),
+                        ("PUSH_LOCAL", True), ("LOCAL_FINISH", True), ("MOVED_BY_PLACE", by_place)):
+        monkeypatch.setattr(iso, name, value)
+    ct, truth = make_phantom("j", "tiny")
+    runs = {}
+    for moved_px in (None, 0.5):
+        monkeypatch.setattr(iso, "VIEW_CHECK_MOVED_PX", moved_px)
+        runs[moved_px] = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                                UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
+    m47, m48 = runs[None].report["method"], runs[0.5].report["method"]
+    assert m47["small_push_shown"][1] is not None and m48["small_push_shown"][1] is not None   # pushed and drawn
+    assert m48["small_push_points"] >= m47["small_push_points"]
+    shown_plain, shown_pushed = m48["small_push_shown"]
+    assert m48["small_push_kept"] == (shown_pushed > shown_plain)
+    res = runs[0.5]
+    prep = SimpleNamespace(lumen_crop=res.lumen_crop, centerline=SimpleNamespace(points_lps=res.centerline_lps),
+                           pixel_mm=res.unfolded.spacing[0])
+    if m48["small_push_points"] > m47["small_push_points"]:   # the box grew: it holds rule 47's box's points
+        assert m48["small_push_points"] > 1000
+    # the count the method kept by is the kept view's own, on points the widened box draws
+    whole = iso._check_points(prep, None, whole=True)
+    assert len(whole) >= m48["small_push_points"]
+    kept_seen = visible_points(res.unfolded, res.correspondence.to_unfolded(whole), first_hit(res.unfolded)[0]).sum()
+    assert kept_seen >= 0.95 * len(whole)

@@ -244,6 +244,14 @@ LOCAL_FINISH = False
 #: where the two maps do not share their vertices), not on the fold's box alone. Rule 47's push on real CT 01's small
 #: map moved the whole view 2-7 mm and lost 0.29 point of visible mucosa outside the box. None: rule 47's box.
 VIEW_CHECK_MOVED_PX = None
+#: Rule 49 (docs/RULE49_small_push_checked_where_moved_by_vertex.md): rule 48 with the two maps' vertices matched by
+#: their place on the wall (position and unwrapped angle, to the bit: each map drops its own unused vertices and
+#: numbers the rest afresh), not by their index, and the points counted: rule 47's box round the fold and those of the
+#: box round the fold and the moved vertices that lie within VIEW_CHECK_NEAR_MM (mm) of a moved vertex (a vertex a
+#: peel kept on one map alone may lie far from the fold: their common box is then the whole wall). Rule 48 found the
+#: two maps numbered differently on 22 of 25 drawn pushes and counted the whole wall each time, which cost the small
+#: stomachs 10.9 % of their median time (10 % allowed). False: rule 48 as it was decided.
+MOVED_BY_PLACE = False
 LOCAL_LIMIT_SOLVES = 30
 LOCAL_LIMIT_SWEEPS = 100
 HOLD_WEIGHT = 1000.0
@@ -2023,8 +2031,14 @@ def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
             pushed = _drawn(prep, finished)
             if VIEW_CHECK_MOVED_PX is not None:  # rule 48: counted wherever the push moved the map
                 moved = _moved_lps(drawn, pushed, float(VIEW_CHECK_MOVED_PX) * prep.pixel_mm)
+                box = pts
                 pts = _check_points(prep, None if moved is None else np.concatenate([drawn.hidden, moved]),
                                     whole=moved is None)
+                if MOVED_BY_PLACE and moved is not None and len(moved):  # rule 49: the fold's box and near the moved
+                    from scipy.spatial import cKDTree
+
+                    near = cKDTree(moved).query(pts, distance_upper_bound=float(VIEW_CHECK_NEAR_MM))[0] < np.inf
+                    pts = np.concatenate([box, pts[near & ~_rows_of(pts, box)]])
                 counts[0] = shown(drawn)
                 trace["small_push_points"] = int(len(pts))
             counts[1] = shown(pushed)
@@ -2055,22 +2069,65 @@ def _moved_lps(before: _Drawn, after: _Drawn, tol_mm: float) -> np.ndarray | Non
     """The wall (LPS mm) of the vertices that map ``after`` moved by more than ``tol_mm`` (mm in the view) from map
     ``before`` of the same cut surface, after the best fit of one onto the other by a turn, a mirror and a shift
     (each map is turned to the view's axes on its own); a vertex in the triangles of one map alone counts as moved.
-    None where the two maps do not number the same vertices."""
+    The vertices are matched by index (rule 48: None where the two maps do not number the same vertices) or, with
+    MOVED_BY_PLACE (rule 49), by their place on the wall (:func:`_same_vertices`; None where that is not known)."""
     a, b = np.asarray(before.uv, float), np.asarray(after.uv, float)
-    if a.shape != b.shape or len(before.cut.v) != len(after.cut.v):
+    if MOVED_BY_PLACE:                                   # rule 49: after's vertex j is before's vertex of[j] (-1: none)
+        of = _same_vertices(before.cut, after.cut)
+    elif a.shape != b.shape or len(before.cut.v) != len(after.cut.v):
+        return None
+    else:
+        of = np.arange(len(b))
+    if of is None:
         return None
     in_a = np.zeros(len(a), bool)
     in_a[np.unique(before.cut.f)] = True
     in_b = np.zeros(len(b), bool)
     in_b[np.unique(after.cut.f)] = True
-    both = in_a & in_b
+    both = in_b & (of >= 0)
+    both[both] = in_a[of[both]]
     if both.sum() < 3:
         return None
-    ca, cb = a[both].mean(0), b[both].mean(0)
-    u, _, vt = np.linalg.svd((b[both] - cb).T @ (a[both] - ca))
-    fit = (b - cb) @ (u @ vt) + ca                       # after, laid on before (orthogonal Procrustes)
-    moved = (in_a != in_b) | (both & (np.linalg.norm(fit - a, axis=1) > tol_mm))
-    return np.asarray(after.cut.v, float)[moved]
+    pa, pb = a[of[both]], b[both]
+    ca, cb = pa.mean(0), pb.mean(0)
+    u, _, vt = np.linalg.svd((pb - cb).T @ (pa - ca))
+    fit = (pb - cb) @ (u @ vt) + ca                      # after, laid on before (orthogonal Procrustes)
+    moved_b = in_b.copy()                                # used by after: moved unless matched and not moved
+    moved_b[both] = np.linalg.norm(fit - pa, axis=1) > tol_mm
+    kept_a = np.zeros(len(a), bool)
+    kept_a[of[both]] = True
+    return np.concatenate([np.asarray(after.cut.v, float)[moved_b], np.asarray(before.cut.v, float)[in_a & ~kept_a]])
+
+
+def _rows_of(points: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bool (N,): which of ``points`` (LPS mm) are rows of ``pts`` (LPS mm), to the bit."""
+    if not len(points) or not len(pts):
+        return np.zeros(len(points), bool)
+
+    def rows(x):
+        x = np.ascontiguousarray(np.asarray(x, np.float64))
+        return x.view(np.dtype((np.void, x.dtype.itemsize * x.shape[1]))).ravel()
+
+    return np.isin(rows(points), rows(pts))
+
+
+def _same_vertices(a_cut, b_cut) -> np.ndarray | None:
+    """For each vertex of cut surface ``b_cut``, the index of the same vertex in ``a_cut`` (-1 where it has none): the
+    same place (LPS mm) and unwrapped angle ``theta`` to the bit, as two restrictions of one IsoSurface keep them
+    (a cut copy shares its original's place, not its angle). None where a surface has no angles or a key repeats."""
+    ta, tb = getattr(a_cut, "theta", None), getattr(b_cut, "theta", None)
+    if ta is None or tb is None:
+        return None
+
+    def keys(cut, t):
+        rows = np.ascontiguousarray(np.c_[np.asarray(cut.v, np.float64), np.asarray(t, np.float64)])
+        return rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()
+
+    ka = keys(a_cut, ta)
+    index = dict(zip(ka.tolist(), range(len(ka))))
+    if len(index) != len(ka):
+        return None
+    return np.fromiter((index.get(k, -1) for k in keys(b_cut, tb).tolist()), np.int64, len(b_cut.v))
 
 
 def _bridged(cut: IsoSurface) -> IsoSurface:
