@@ -1503,3 +1503,36 @@ def test_rules_48_and_49_count_wherever_the_push_moved_the_map(monkeypatch, by_p
     assert len(whole) >= m48["small_push_points"]
     kept_seen = visible_points(res.unfolded, res.correspondence.to_unfolded(whole), first_hit(res.unfolded)[0]).sum()
     assert kept_seen >= 0.95 * len(whole)
+
+
+def test_rule_50_drops_a_push_that_the_guard_shrinks_whole(monkeypatch):
+    # the tiny J's fold taken as a small one under rule 49; the stretch guard made to shrink the pushed map (the second
+    # map it holds) by 10 %: rule 50 drops that push before it is drawn and the view is the map as it was
+    import StomachUnfoldLib.methods.isometric as iso
+
+    for name, value in (("PUSH_FROM_MM2", 1e9), ("SMALL_PUSH_STEPS", 20), ("SMALL_PUSH_HOLD", True),
+                        ("SMALL_PUSH_BY_VIEW", True), ("FLIP_DEGREES", ()), ("VIEW_CHECK_NEAR_MM", 20.0),
+                        ("PUSH_LOCAL", True), ("LOCAL_FINISH", True), ("VIEW_CHECK_MOVED_PX", 0.5),
+                        ("MOVED_BY_PLACE", True)):
+        monkeypatch.setattr(iso, name, value)
+    ct, truth = make_phantom("j", "tiny")
+    guard = iso.hold_within_limit
+    calls = []
+
+    def shrinking_guard(v, f, uv, **kw):
+        out, scale = guard(v, f, uv, **kw)
+        calls.append(scale)
+        return (out * 0.9, 0.9 * scale) if len(calls) == 2 else (out, scale)
+
+    monkeypatch.setattr(iso, "hold_within_limit", shrinking_guard)
+    got = {}
+    for keeps in (False, True):
+        calls.clear()
+        monkeypatch.setattr(iso, "PUSH_KEEPS_SCALE", keeps)
+        got[keeps] = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
+                            UnfoldParameters(method="isometric", wall_thickness_mm=4.0, quality=False)).report["method"]
+    assert got[False]["small_push_finished"] and got[False]["small_push_shown"][1] is not None   # rule 49 drew it
+    m = got[True]
+    assert m["small_push_shrunk"] and not m["small_push_finished"] and m["small_push_shown"][1] is None
+    assert not m["small_push_kept"] and m["stretch_guard_scale"] == 1.0
+    assert m["hidden_fold_mm2"] == pytest.approx(m["push_mm2"][0])                    # the fold as it was
