@@ -305,16 +305,20 @@ BRIDGE_GUARD_MM2 = LIGHT_DEFECT_MM2
 BRIDGE_GROW_MM = 0.5 * BRIDGE_BALL_MM
 
 
+def _row_keys(x: np.ndarray) -> np.ndarray:
+    """One hashable, comparable key per row of an int or float array (N,D) (as int64 or float64), equal only for rows
+    equal to the bit."""
+    x = np.asarray(x)
+    x = np.ascontiguousarray(x, np.int64 if np.issubdtype(x.dtype, np.integer) else np.float64)
+    return x.view(np.dtype((np.void, x.dtype.itemsize * x.shape[1]))).ravel()
+
+
 def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Bool (N,): which rows of the (N,3) non-negative int array a (vertex indices of triangles) are rows of b, in the
-    same order (rows of one mesh's f keep their vertex order when peeled or dropped)."""
-    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
-    n = int(max(a.max(initial=0), b.max(initial=0))) + 1
-
-    def key(t):
-        return (t[:, 0] * n + t[:, 1]) * n + t[:, 2]
-
-    return np.isin(key(a), key(b)) if len(a) else np.zeros(0, bool)
+    """Bool (N,): which rows of a (N,D) are rows of b, to the bit: triangles (vertex indices in the same order, as rows
+    of one mesh's f keep theirs when peeled or dropped) or points (LPS mm)."""
+    if not len(a) or not len(b):
+        return np.zeros(len(a), bool)
+    return np.isin(_row_keys(a), _row_keys(b))
 
 
 def _unique_rows(e: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
@@ -2054,7 +2058,7 @@ def _shown_more(prep, cut, drawn: _Drawn, push, check=None) -> _Drawn:
                     from scipy.spatial import cKDTree
 
                     near = cKDTree(moved).query(pts, distance_upper_bound=float(VIEW_CHECK_NEAR_MM))[0] < np.inf
-                    pts = np.concatenate([box, pts[near & ~_rows_of(pts, box)]])
+                    pts = np.concatenate([box, pts[near & ~_rows_in(pts, box)]])
                 counts[0] = shown(drawn)
                 trace["small_push_points"] = int(len(pts))
             counts[1] = shown(pushed)
@@ -2113,19 +2117,6 @@ def _moved_lps(before: _Drawn, after: _Drawn, tol_mm: float) -> np.ndarray | Non
     kept_a = np.zeros(len(a), bool)
     kept_a[of[both]] = True
     return np.concatenate([np.asarray(after.cut.v, float)[moved_b], np.asarray(before.cut.v, float)[in_a & ~kept_a]])
-
-
-def _row_keys(x: np.ndarray) -> np.ndarray:
-    """One hashable, comparable key per row of a float array (N,D), equal only for rows equal to the bit."""
-    x = np.ascontiguousarray(np.asarray(x, np.float64))
-    return x.view(np.dtype((np.void, x.dtype.itemsize * x.shape[1]))).ravel()
-
-
-def _rows_of(points: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Bool (N,): which of ``points`` (LPS mm) are rows of ``pts`` (LPS mm), to the bit."""
-    if not len(points) or not len(pts):
-        return np.zeros(len(points), bool)
-    return np.isin(_row_keys(points), _row_keys(pts))
 
 
 def _same_vertices(a_cut, b_cut) -> np.ndarray | None:
