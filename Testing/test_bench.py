@@ -630,7 +630,12 @@ def test_the_phase_table_counts_what_moved_with_the_raster_and_the_depth_samples
     assert by["isometric", "depth"]["behind_lscm_flips"] == ["a", "b"]   # a: ahead at 0, behind here; b: tied -> behind
     beh = rp.behind_summary(rows)
     assert beh == [{"set": "tiny", "method": "isometric", "volumes": 2, "behind_every_phase": [],
-                    "behind_some_phases": ["a", "b"], "behind_none": 0}]
+                    "behind_some_phases": ["a", "b"], "behind_none": 0, "behind_on_the_mean": ["a", "b"]}]
     rows.append(row("c", "lscm", 0.0, 0.9990, 8))                # c still runs at one phase only: left out
     assert rp.behind_summary(rows)[0]["volumes"] == 2
-    assert "| tiny | isometric | 2 | none | a, b | 0 |" in "\n".join(rp.phase_markdown(rows))
+    assert "| tiny | isometric | 2 | none | a, b | 0 | a, b |" in "\n".join(rp.phase_markdown(rows))
+    # a volume behind at one phase only by a little and ahead by more at the others is not behind on the mean
+    d = [row("d", m, o, v, 5, dep=p) for m, vals in (("isometric", (0.9990, 1.0, 1.0, 1.0)), ("lscm", (0.9995,) * 4))
+         for (o, p), v in zip(rp.PHASES, vals)]
+    e = rp.behind_summary(d)[0]
+    assert e["behind_some_phases"] == ["d"] and e["behind_on_the_mean"] == []
