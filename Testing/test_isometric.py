@@ -239,31 +239,57 @@ def tiny_run():
     return ct, truth, res
 
 
-def _tiny_with(name: str, value):
-    """The tiny J unfolded with the isometric module's constant ``name`` set to ``value`` for the run."""
+def _tiny_with(**values):
+    """The tiny J unfolded with the isometric module's constants set to ``values`` (name=value) for the run."""
     import StomachUnfoldLib.methods.isometric as iso
 
     ct, truth = make_phantom("j", "tiny")
-    before = getattr(iso, name)
-    setattr(iso, name, value)
+    before = {name: getattr(iso, name) for name in values}
+    for name, value in values.items():
+        setattr(iso, name, value)
     try:
         res = unfold(ct, np.array(truth["cardia_lps"]), np.array(truth["pylorus_lps"]),
                      UnfoldParameters(method="isometric", wall_thickness_mm=4.0))
     finally:
-        setattr(iso, name, before)
+        for name, value in before.items():
+            setattr(iso, name, value)
     return ct, truth, res
+
+
+#: Rules 42-50's switches as they were before rule 51 turned them on together (docs/RULE51_small_push_under_p2.md):
+#: the tests of the fold chain and of each of those rules start from there and set their own rule on top.
+RULES_42_TO_50_OFF = (("SMALL_PUSH_STEPS", 0), ("SMALL_PUSH_HOLD", False), ("SMALL_PUSH_BY_VIEW", False),
+                      ("VIEW_CHECK_NEAR_MM", None), ("PUSH_LOCAL", False), ("LOCAL_FINISH", False),
+                      ("VIEW_CHECK_MOVED_PX", None), ("MOVED_BY_PLACE", False), ("PUSH_KEEPS_SCALE", False))
+
+
+def _rules_42_to_50_off(monkeypatch):
+    """Set rules 42-50's switches off for one test (monkeypatch restores them)."""
+    import StomachUnfoldLib.methods.isometric as iso
+
+    for name, value in RULES_42_TO_50_OFF:
+        monkeypatch.setattr(iso, name, value)
+
+
+def test_rule_51_is_rules_42_to_50_on_together():
+    import StomachUnfoldLib.methods.isometric as iso
+
+    on = {"SMALL_PUSH_STEPS": 20, "SMALL_PUSH_HOLD": True, "SMALL_PUSH_BY_VIEW": True, "VIEW_CHECK_NEAR_MM": 20.0,
+          "PUSH_LOCAL": True, "LOCAL_FINISH": True, "VIEW_CHECK_MOVED_PX": 0.5, "MOVED_BY_PLACE": True,
+          "PUSH_KEEPS_SCALE": True}
+    assert {name: getattr(iso, name) for name, _ in RULES_42_TO_50_OFF} == on
 
 
 @pytest.fixture(scope="module")
 def tiny_unpushed():
     """The tiny J unfolded with its peeled folds left peeled (no push): the fold chain before :func:`push_apart`."""
-    return _tiny_with("PUSH_FROM_MM2", 1e9)
+    return _tiny_with(PUSH_FROM_MM2=1e9, SMALL_PUSH_STEPS=0)
 
 
 @pytest.fixture(scope="module")
 def tiny_unturned():
     """The tiny J unfolded with the flap the push leaves not turned (rule 36 off): the push's own map."""
-    return _tiny_with("FLIP_DEGREES", ())
+    return _tiny_with(FLIP_DEGREES=())
 
 
 def test_a_fold_left_peeled_is_pushed_apart_and_shows_its_mucosa(tiny_unturned, tiny_unpushed):
@@ -483,6 +509,7 @@ def test_a_peeled_fold_is_hidden_warned_and_ringed_on_the_view(tiny_unpushed, tm
 def test_the_boundary_term_shrinks_the_folds_peeled_at_the_pyloric_end(tiny_unpushed, monkeypatch):
     import StomachUnfoldLib.methods.isometric as iso
 
+    _rules_42_to_50_off(monkeypatch)
     monkeypatch.setattr(iso, "PUSH_FROM_MM2", 1e9)  # the fold chain before the push
     ct, truth, res = tiny_unpushed
     monkeypatch.setattr(iso, "BOUNDARY_WEIGHT", 0.0)
@@ -608,6 +635,7 @@ def test_a_map_that_pinches_a_notch_shut_gives_way_to_the_whole_boundary_straigh
 
 
 def test_a_large_fold_is_solved_again_with_the_boundary_held_straighter(tiny_unpushed, monkeypatch):
+    _rules_42_to_50_off(monkeypatch)
     import StomachUnfoldLib.methods.isometric as iso
 
     monkeypatch.setattr(iso, "PUSH_FROM_MM2", 1e9)  # the fold chain before the push
@@ -627,6 +655,7 @@ def test_a_large_fold_is_solved_again_with_the_boundary_held_straighter(tiny_unp
 
 
 def test_a_fold_left_is_solved_again_with_the_wall_round_it_as_similar(tiny_unpushed, monkeypatch):
+    _rules_42_to_50_off(monkeypatch)
     import StomachUnfoldLib.methods.isometric as iso
 
     monkeypatch.setattr(iso, "PUSH_FROM_MM2", 1e9)  # the fold chain before the push
@@ -643,6 +672,7 @@ def test_a_fold_left_is_solved_again_with_the_wall_round_it_as_similar(tiny_unpu
 
 
 def test_a_map_that_folds_with_heavy_distance_terms_is_solved_again_with_light_ones(tiny_unpushed, monkeypatch):
+    _rules_42_to_50_off(monkeypatch)
     import StomachUnfoldLib.methods.isometric as iso
 
     monkeypatch.setattr(iso, "PUSH_FROM_MM2", 1e9)  # the fold chain before the push
@@ -727,6 +757,7 @@ def _peeled_disc_map():
 
 
 def test_a_fold_under_a_failure_part_is_pushed_only_under_rule_42(monkeypatch):
+    _rules_42_to_50_off(monkeypatch)
     # rule 42: a peeled fold at or under PUSH_FROM_MM2 is pushed too, with SMALL_PUSH_STEPS steps; off (0) it is left
     import StomachUnfoldLib.methods.isometric as iso
 
@@ -745,6 +776,7 @@ def test_a_fold_under_a_failure_part_is_pushed_only_under_rule_42(monkeypatch):
 
 
 def test_under_rule_43_a_small_push_holds_the_map_beyond_the_fold(monkeypatch):
+    _rules_42_to_50_off(monkeypatch)
     # rule 43: the small fold's push holds every vertex that no triangle within PUSH_NEAR_MM of the fold has
     import StomachUnfoldLib.methods.isometric as iso
     from StomachUnfoldLib.methods.isometric import overlapping_triangles, push_apart
@@ -801,6 +833,7 @@ def test_under_rule_44_the_small_push_waits_beside_the_map(monkeypatch):
 @pytest.mark.parametrize("near_mm,local,finish", [(None, False, False), (20.0, False, False), (20.0, True, False),
                                                    (20.0, True, True)])
 def test_under_rules_44_to_47_the_view_that_shows_more_of_the_wall_is_kept(monkeypatch, near_mm, local, finish):
+    _rules_42_to_50_off(monkeypatch)
     # the tiny J's fold taken as a small one: both maps drawn, the one whose view shows more lumen-edge points kept
     # (rule 44: points of the whole wall; rule 45: those in a box round the fold; rule 46: the push solved near it;
     # rule 47: its strain limit on the sub-mesh near it)
@@ -946,6 +979,7 @@ def test_the_pushed_maps_limit_near_the_fold_keeps_the_rest_or_falls_back_to_the
 
 
 def test_rule_45_counts_the_wall_near_the_fold_only(monkeypatch):
+    _rules_42_to_50_off(monkeypatch)
     # the check's points: the whole wall's sample (rule 44), or every lumen-edge point in the box round the fold
     import StomachUnfoldLib.methods.isometric as iso
     from StomachUnfoldLib.quality import mucosa_points
@@ -1414,7 +1448,8 @@ def test_a_flap_left_after_the_push_is_turned_about_its_hinge_and_kept_when_it_h
     assert m["flip_kept"] == 120.0                      # the tiny J: 103 -> 56 mm^2 here
 
 
-def test_the_vertices_a_push_moved_are_found_after_the_best_turn_mirror_and_shift():
+def test_the_vertices_a_push_moved_are_found_after_the_best_turn_mirror_and_shift(monkeypatch):
+    _rules_42_to_50_off(monkeypatch)
     # rule 48: the pushed map is turned to the view's axes on its own; a turned, mirrored and shifted copy of the map
     # with two vertices moved gives those two (and a vertex only the pushed map's triangles use), nothing else
     import StomachUnfoldLib.methods.isometric as iso
