@@ -811,6 +811,7 @@ def test_under_rule_44_the_small_push_waits_beside_the_map(monkeypatch):
     # rule 44: the small fold's push is not made in the flat map's chain; it waits, as a callable, beside the map
     import StomachUnfoldLib.methods.isometric as iso
 
+    _rules_42_to_50_off(monkeypatch)
     cut, current, fold, _ = _peeled_disc_map()
     monkeypatch.setattr(iso, "PUSH_FROM_MM2", fold + 1.0)          # this fold is a small one
     monkeypatch.setattr(iso, "SMALL_PUSH_STEPS", 20)
@@ -1513,6 +1514,7 @@ def test_rules_48_and_49_count_wherever_the_push_moved_the_map(monkeypatch, by_p
     from StomachUnfoldLib.quality import visible_points
     from StomachUnfoldLib.view import first_hit
 
+    _rules_42_to_50_off(monkeypatch)                          # rules 48 and 49 as decided: rule 50's drop off
     for name, value in (("PUSH_FROM_MM2", 1e9), ("SMALL_PUSH_STEPS", 20), ("SMALL_PUSH_HOLD", True),
                         ("SMALL_PUSH_BY_VIEW", True), ("FLIP_DEGREES", ()), ("VIEW_CHECK_NEAR_MM", 20.0),
                         ("PUSH_LOCAL", True), ("LOCAL_FINISH", True), ("MOVED_BY_PLACE", by_place)):
