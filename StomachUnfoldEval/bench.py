@@ -20,6 +20,7 @@ from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
 from .memory import memory_markdown, memory_plot, memory_runs
+from .oblique import oblique_cases, oblique_markdown, turned_grid
 from .raster_phase import phase_cases, phase_markdown
 from .regional import area_scale_along, area_scale_summary
 
@@ -153,6 +154,8 @@ def _load(source: dict):
     """CT Volume, cardia/pylorus (LPS), optional mask and marker truth for a case's source."""
     if "random" in source or "hybrid" in source:
         ct, truth = _cached(source, source.get("_cache"))
+        if source.get("turn"):  # resampled onto an oblique grid (part ``oblique``): the same anatomy, LPS unchanged
+            ct = turned_grid(ct, source["turn"]["degrees"], source["turn"]["axis"])
         markers = {m["id"]: m["lps"] for m in truth["markers"]}
         if source.get("auto_points"):  # zero clicks: the points found as `unfold --auto-points` finds them
             from .auto_points import found_versus_truth
@@ -398,6 +401,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += mesh_size_cases(quick)
     if "clicks" in parts:
         cases += click_error_cases(quick, TUNE_SEEDS, HELD_OUT_SEEDS, _phantom_cache(None), Case)
+    if "oblique" in parts:
+        cases += oblique_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "phase" in parts:
         cases += phase_cases(quick, data_dir, _real_cts(data_dir), _phantom_cache(None), Case)
     if "surfacebound" in parts:
@@ -1179,6 +1184,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     L += family_markdown(rows)
     L += mesh_size_markdown(rows)
     L += click_error_markdown(rows, TUNE_SEEDS, HELD_OUT_SEEDS)
+    L += oblique_markdown(rows, "stomachs-held-out")
     L += phase_markdown(rows)
     L += surface_bound_markdown(rows)
     L += memory_markdown(rows)

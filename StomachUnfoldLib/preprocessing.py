@@ -577,48 +577,18 @@ def dense_object_edges(fluid: np.ndarray, air: np.ndarray, sm: np.ndarray, max_h
     return out
 
 
-def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, threshold_hu: float = -500.0,
-                      min_level_mm2: float = 300.0, max_depth_mm: float = 120.0,
-                      max_air_ratio: float = 2.0) -> tuple[np.ndarray, dict]:
-    """Retained fluid (bool mask on ct's grid) under a flat horizontal air-fluid level (LPS y = const, mm) of ``air``.
-
-    A supine stomach's water lies on the posterior (LPS +y) wall under a flat level. The level is the air
-    region's flat posterior boundary (:func:`_level_patch`; none: no fluid, nothing changes). From each of its
-    voxels a ray is cast posteriorly along the grid axis closest to +y through the CT lightly smoothed
-    (Gaussian, one voxel or 1.5 mm if less): it crosses the partial-volume voxels of the first 3 mm (air and
-    water) and goes on while the HU stays in the water range [``FLUID_MIN_HU``, ``max_hu``] (HU; the wall is
-    about 40 HU, fat about -90 HU), stopping at the first voxel above ``max_hu``, at two in a row below the
-    range or after ``max_depth_mm``; a ray that ran on through a wall too thin to resolve then ends half-way up to
-    that wall's peak (:func:`thin_wall_edge`). The fluid's depth below each level voxel is the 5 x 5 median of the
-    rays' depths (a ray stopped by a noise voxel would leave a pillar of "wall" inside the lumen, one through a thin
-    wall a spike), less voxels over ``max_hu`` + 50 HU (a bead or calcification on the floor stays), less the last
-    voxel where the water still ends in a fall to fat (a wall too thin to show a peak, :func:`_falling_floor`),
-    plus the tail of a dense object's blur beside the water up to half-way to its peak (:func:`dense_object_edges`: a
-    marker bead, a clip, contrast), so the mound it sits on under water is smaller. With ``WATER_RUNS = "evidence"``
-    (rule 39; ``"thick"``, rule 40: on slices over THICK_SLICE_MM) a ray ends where its summed evidence for water is
-    largest rather than at its first voxel above the range (:func:`water_runs`), and one-voxel gaps of the water
-    across the rays are closed (:func:`close_water_gaps`).
-    Fluid is kept only if at least ``FLUID_MIN_WATER_FRACTION`` of the level has two or more water voxels under it
-    (each ray clipped to two voxels beyond that median; an air boundary lying flat on tissue has none), and refused
-    with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
-
-    Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
-    of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level),
-    ``warnings`` (list of str).
-    """
-    air = np.asarray(air, bool)
+def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: float, min_level_mm2: float,
+                   max_depth_mm: float):
+    """The water under the air's flat level, its rays run down the grid axis closest to LPS +y (see
+    :func:`fluid_below_level`): (fluid mask, level's LPS y mm), or None (no level, or too little water under it)."""
     shape = air.shape
-    info = {"fluid_voxels": 0, "fluid_ml": 0.0, "fluid_level_lps_y": None, "warnings": []}
-    none = np.zeros(shape, bool)
-    if not air.any() or max_hu <= FLUID_MIN_HU:
-        return none, info
     ji = air.any(axis=0)  # the air's box, from one projection (the whole-volume reductions cost 3x more)
     j_, i_ = np.flatnonzero(ji.any(axis=1)), np.flatnonzero(ji.any(axis=0))
     k_ = np.flatnonzero(air[:, j_[0]:j_[-1] + 1, i_[0]:i_[-1] + 1].any(axis=(1, 2)))
     box = (slice(k_[0], k_[-1] + 1), slice(j_[0], j_[-1] + 1), slice(i_[0], i_[-1] + 1))
     level_b = _level_patch(air[box], ct, min_level_mm2)
     if level_b is None:
-        return none, info
+        return None
     ax, st = _posterior_axis(ct)
     a_ijk = 2 - ax
     w = float(abs(ct.direction[1, a_ijk]) * ct.spacing[a_ijk])
@@ -661,7 +631,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     take = offs[None, :] <= np.minimum(run, med + 2)[:, None]
     water = np.count_nonzero(take & ok & (offs[None, :] > n_partial), axis=1) >= 2
     if float(np.mean(water)) < FLUID_MIN_WATER_FRACTION:
-        return none, info  # a flat air boundary on tissue, not on water
+        return None  # a flat air boundary on tissue, not on water
     # the fluid's floor: the 5 x 5 median of the rays' depths (no pillar left by a ray a noise voxel stopped,
     # no spike where a ray went through a thin wall)
     depth = np.minimum(med, np.count_nonzero(inside, axis=1))
@@ -680,6 +650,138 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
                                        else along < rel[:, ax].max(), max_hu)
     fluid[rbox] = dense_object_edges(fluid[rbox], air[rbox], sm, max_hu)
     del sm
+    return fluid, level_y
+
+
+#: A grid whose axis closest to LPS +y is tilted from it by more than this (degrees: an oblique reformat, a volume
+#: resampled into a turned box) has its water found on a grid turned upright, one axis along +y, and mapped back: the
+#: rays that follow the water down run along a grid axis, and on the tilted one they would leave slivers of water
+#: untouched between them (cracks of "wall" in the lumen).
+UPRIGHT_TILT_DEG = 1.0
+
+
+def _tilt_deg(ct: Volume) -> float:
+    """Angle (degrees) between LPS +y and the CT's grid axis closest to it."""
+    return float(np.degrees(np.arccos(np.clip(np.max(np.abs(np.asarray(ct.direction, float)[1, :])), -1.0, 1.0))))
+
+
+def _upright_direction(direction: np.ndarray) -> np.ndarray:
+    """The direction matrix turned by the least rotation that lays its axis closest to LPS +y exactly along +-y."""
+    D = np.asarray(direction, float)
+    a = int(np.argmax(np.abs(D[1, :])))
+    u = np.sign(D[1, a]) * D[:, a]
+    axis = np.cross(u, [0.0, 1.0, 0.0])
+    sin, cos = float(np.linalg.norm(axis)), float(u[1])
+    if sin < 1e-12:
+        return D.copy()
+    k = axis / sin
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return (np.eye(3) + sin * K + (1.0 - cos) * K @ K) @ D
+
+
+def _resampled(arr: np.ndarray, src: Volume, ref: Volume, linear: bool, background: float) -> np.ndarray:
+    """``arr`` (on ``src``'s grid) resampled onto ``ref``'s grid (trilinear or nearest; ``background`` outside)."""
+    import SimpleITK as sitk
+
+    img = Volume(np.ascontiguousarray(arr, np.float32), src.spacing, src.origin, src.direction).to_sitk()
+    out = sitk.Resample(img, [int(x) for x in ref.array.shape[::-1]], sitk.Transform(),
+                        sitk.sitkLinear if linear else sitk.sitkNearestNeighbor, [float(x) for x in ref.origin],
+                        [float(x) for x in ref.spacing], [float(x) for x in np.asarray(ref.direction, float).ravel()],
+                        float(background), sitk.sitkFloat32)
+    return sitk.GetArrayFromImage(out)
+
+
+def _fluid_upright(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: float, min_level_mm2: float,
+                   max_depth_mm: float):
+    """:func:`_fluid_on_grid` on the air's part of an oblique CT copied (nearest voxel) onto a grid of the same voxel
+    size turned upright (:func:`_upright_direction`), its water mapped back to the CT's voxels (nearest) and closed
+    where it meets the air (voxels touching both, at most ``max_hu`` HU) and in single voxels the round trip left
+    between its own: (fluid mask, level's LPS y mm), or None."""
+    sp = np.asarray(ct.spacing, float)
+    lo, hi = bounding_box(air, (3, 3, 3))                        # (i, j, k), hi exclusive
+    corners = np.array([[i, j, k] for i in (lo[0], hi[0] - 1) for j in (lo[1], hi[1] - 1) for k in (lo[2], hi[2] - 1)],
+                       float)
+    lps = ct.index_to_lps(corners)
+    lps = np.vstack([lps, lps + [0.0, float(max_depth_mm), 0.0]])  # the rays run up to max_depth_mm posteriorly
+    D2 = _upright_direction(ct.direction)
+    along = lps @ D2
+    a_lo, a_hi = along.min(0), along.max(0)
+    up_shape = tuple(int(x) for x in (np.ceil((a_hi - a_lo) / sp).astype(int) + 1)[::-1])
+    up = Volume(np.zeros(up_shape, np.int16), sp, D2 @ a_lo, D2)
+    # the CT's voxels that grid covers
+    n = np.array(up_shape[::-1], float) - 1.0
+    box_lps = up.index_to_lps(np.array([[i, j, k] for i in (0.0, n[0]) for j in (0.0, n[1]) for k in (0.0, n[2])]))
+    ijk = ct.lps_to_index(box_lps)
+    b_lo = np.maximum(np.floor(ijk.min(0)).astype(int) - 1, 0)[::-1]
+    b_hi = np.minimum(np.ceil(ijk.max(0)).astype(int) + 2, np.array(air.shape[::-1]))[::-1]
+    box = tuple(slice(int(a), int(b)) for a, b in zip(b_lo, b_hi))
+    hu_sub = np.asarray(ct.array[box])
+    sub = Volume(hu_sub, sp, ct.index_to_lps(b_lo[::-1][None].astype(float))[0], ct.direction)
+    # the rays read the CT's own voxel values (nearest: no blur beyond the core's own smoothing, which on a trilinear
+    # copy let the water run on into the wall); the air is the region's copy cut at the threshold on the trilinear
+    # copy, so that its bottom is the flat level, not the staircase of the tilted grid's voxels (which left columns
+    # out of the level and their water out of the lumen)
+    up = up.with_array(np.rint(_resampled(hu_sub, sub, up, False, -1024.0)).astype(np.int16))
+    air_up = ((_resampled(hu_sub, sub, up, True, -1024.0) < threshold_hu)
+              & ndimage.binary_dilation(_resampled(air[box], sub, up, False, 0.0) > 0.5, np.ones((3, 3, 3), bool)))
+    found = _fluid_on_grid(up, air_up, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
+    if found is None:
+        return None
+    fluid_up, level_y = found
+    f_sub = (_resampled(fluid_up, up, sub, False, 0.0) > 0.5) & ~air[box]
+    touching = ndimage.binary_dilation(f_sub) & ndimage.binary_dilation(air[box])
+    f_sub |= touching & ~air[box] & (hu_sub <= max_hu)
+    # single voxels the nearest-voxel round trip left between the water's voxels (enclosed, at most 3 together)
+    holes, n_holes = ndimage.label(ndimage.binary_fill_holes(f_sub | air[box]) & ~f_sub & ~air[box])
+    if n_holes:
+        small = np.flatnonzero(np.bincount(holes.ravel())[1:] <= 3) + 1
+        f_sub |= np.isin(holes, small)
+    fluid = np.zeros(air.shape, bool)
+    fluid[box] = f_sub
+    return fluid, level_y
+
+
+def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, threshold_hu: float = -500.0,
+                      min_level_mm2: float = 300.0, max_depth_mm: float = 120.0,
+                      max_air_ratio: float = 2.0) -> tuple[np.ndarray, dict]:
+    """Retained fluid (bool mask on ct's grid) under a flat horizontal air-fluid level (LPS y = const, mm) of ``air``.
+
+    A supine stomach's water lies on the posterior (LPS +y) wall under a flat level. The level is the air
+    region's flat posterior boundary (:func:`_level_patch`; none: no fluid, nothing changes). From each of its
+    voxels a ray is cast posteriorly along the grid axis closest to +y through the CT lightly smoothed
+    (Gaussian, one voxel or 1.5 mm if less): it crosses the partial-volume voxels of the first 3 mm (air and
+    water) and goes on while the HU stays in the water range [``FLUID_MIN_HU``, ``max_hu``] (HU; the wall is
+    about 40 HU, fat about -90 HU), stopping at the first voxel above ``max_hu``, at two in a row below the
+    range or after ``max_depth_mm``; a ray that ran on through a wall too thin to resolve then ends half-way up to
+    that wall's peak (:func:`thin_wall_edge`). The fluid's depth below each level voxel is the 5 x 5 median of the
+    rays' depths (a ray stopped by a noise voxel would leave a pillar of "wall" inside the lumen, one through a thin
+    wall a spike), less voxels over ``max_hu`` + 50 HU (a bead or calcification on the floor stays), less the last
+    voxel where the water still ends in a fall to fat (a wall too thin to show a peak, :func:`_falling_floor`),
+    plus the tail of a dense object's blur beside the water up to half-way to its peak (:func:`dense_object_edges`: a
+    marker bead, a clip, contrast), so the mound it sits on under water is smaller. With ``WATER_RUNS = "evidence"``
+    (rule 39; ``"thick"``, rule 40: on slices over THICK_SLICE_MM) a ray ends where its summed evidence for water is
+    largest rather than at its first voxel above the range (:func:`water_runs`), and one-voxel gaps of the water
+    across the rays are closed (:func:`close_water_gaps`).
+    On an oblique grid (its axis closest to +y tilted over UPRIGHT_TILT_DEG) the rays run down a grid of the same
+    voxel size turned upright about the air, and the water found there is mapped back (:func:`_fluid_upright`).
+    Fluid is kept only if at least ``FLUID_MIN_WATER_FRACTION`` of the level has two or more water voxels under it
+    (each ray clipped to two voxels beyond that median; an air boundary lying flat on tissue has none), and refused
+    with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
+
+    Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
+    of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level),
+    ``warnings`` (list of str).
+    """
+    air = np.asarray(air, bool)
+    info = {"fluid_voxels": 0, "fluid_ml": 0.0, "fluid_level_lps_y": None, "warnings": []}
+    none = np.zeros(air.shape, bool)
+    if not air.any() or max_hu <= FLUID_MIN_HU:
+        return none, info
+    found = (_fluid_upright if _tilt_deg(ct) > UPRIGHT_TILT_DEG else _fluid_on_grid)(
+        ct, air, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
+    if found is None:
+        return none, info
+    fluid, level_y = found
     n = int(np.count_nonzero(fluid))
     info["fluid_level_lps_y"] = level_y
     ras = f"LPS y = {level_y:.1f} mm (RAS A = {-level_y:.1f} mm)"

@@ -1,0 +1,158 @@
+"""The ``oblique`` part of ``stomach-unfold bench``: each method on random stomachs resampled onto oblique voxel grids.
+
+The family draws its volumes with axis-aligned, permuted or flipped direction matrices only. A CT reformatted along
+an oblique plane, a volume cropped with a turned region of interest in Slicer, or a scan with gantry tilt resampled
+to an orthogonal grid has voxel axes that are none of the patient's. The part resamples each held-out random stomach
+(never tuned on) onto a grid turned by an angle drawn per seed (OBLIQUE_DEGREES, about a random axis): the same
+anatomy at the same LPS places, the voxels the same size, sampled anew (trilinear, so a little more blur). The true
+points and markers are unchanged (LPS mm). Its table sets each method's oblique runs beside its own rows on the same
+volumes as drawn (the ``stomachs`` part's): grades, visible mucosa, markers, distortion, time, and the volumes that
+lose against their axis-aligned run.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from StomachUnfoldLib.geometry import Volume
+
+#: The turn of each volume's grid (degrees, drawn uniformly between the two per seed, about a random axis).
+OBLIQUE_DEGREES = (15.0, 40.0)
+#: The methods run on the turned grids (mass-spring takes minutes per volume and is left out).
+OBLIQUE_METHODS = ("isometric", "cylindrical", "lscm")
+#: The rows' group in results.json.
+GROUP = "oblique"
+#: A volume counts as losing on its turned grid when its visible mucosa falls by more than this (fraction).
+VISIBLE_DROP = 0.005
+
+__all__ = ["turned_grid", "grid_turn", "oblique_cases", "oblique_summary", "oblique_markdown", "OBLIQUE_DEGREES",
+           "OBLIQUE_METHODS", "GROUP"]
+
+
+def _rotation(axis, degrees: float) -> np.ndarray:
+    """Rotation matrix (3x3) by ``degrees`` about the unit vector along ``axis`` (right-handed)."""
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    t = np.radians(float(degrees))
+    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    return np.eye(3) + np.sin(t) * K + (1.0 - np.cos(t)) * K @ K
+
+
+def grid_turn(seed: int) -> dict:
+    """The turn of seed's grid: ``{"degrees": angle in OBLIQUE_DEGREES, "axis": unit 3-vector in LPS}``."""
+    rng = np.random.default_rng(7_000_003 + int(seed))
+    axis = rng.normal(size=3)
+    return {"degrees": float(rng.uniform(*OBLIQUE_DEGREES)), "axis": (axis / np.linalg.norm(axis)).tolist()}
+
+
+def turned_grid(ct: Volume, degrees: float, axis=(1.0, 2.0, 3.0), background_hu: float = -1024.0) -> Volume:
+    """The CT (HU) resampled trilinearly onto a grid of the same voxel size turned by ``degrees`` about ``axis`` (LPS).
+
+    The new grid's direction is the rotation times the CT's, its box the smallest one of those axes that holds the
+    CT's whole box; voxels outside the CT read ``background_hu``. Every structure keeps its LPS place (mm).
+    """
+    import SimpleITK as sitk
+
+    D = _rotation(axis, degrees) @ np.asarray(ct.direction, float)
+    sp = np.asarray(ct.spacing, float)
+    n = np.array(ct.array.shape[::-1], float) - 1.0
+    corners = np.array([[i, j, k] for i in (0.0, n[0]) for j in (0.0, n[1]) for k in (0.0, n[2])])
+    along = ct.index_to_lps(corners) @ D                  # the corners' coordinates along the new axes (mm)
+    lo, hi = along.min(0), along.max(0)
+    size = [int(x) for x in np.ceil((hi - lo) / sp).astype(int) + 1]
+    ref = sitk.Image(size, sitk.sitkFloat32)
+    ref.SetSpacing([float(x) for x in sp])
+    ref.SetOrigin([float(x) for x in D @ lo])
+    ref.SetDirection([float(x) for x in D.ravel()])
+    img = sitk.Cast(ct.to_sitk(), sitk.sitkFloat32)
+    out = sitk.Resample(img, ref, sitk.Transform(), sitk.sitkLinear, float(background_hu))
+    vol = Volume.from_sitk(out)
+    return vol.with_array(np.rint(vol.array).astype(np.int16))
+
+
+def oblique_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
+    """The part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed, each seed's grid turned by grid_turn."""
+    seeds = list(seeds[:2]) if quick else list(seeds)
+    return [case(f"stomach-{seed}/{m}-oblique", {"random": int(seed), "size": "small", "_cache": cache,
+                                                 "turn": grid_turn(seed)}, {}, method=m, group=GROUP)
+            for m in OBLIQUE_METHODS for seed in seeds]
+
+
+def _volume(row: dict) -> str:
+    """The volume a row ran on (``stomach-SEED``)."""
+    return row["name"].split("/")[0]
+
+
+def oblique_summary(rows: list[dict], aligned_group: str) -> list[dict]:
+    """Per method, the oblique runs and the same method's rows on the same volumes as drawn (``aligned_group``'s, the
+    true points): runs, failed, excellent, good or better, visible median and minimum, markers, distortion median,
+    time median (s), and on the oblique grid the volumes whose visible mucosa falls by over VISIBLE_DROP or that see
+    fewer markers than as drawn."""
+    turned = [r for r in rows if r.get("group") == GROUP]
+    out = []
+    for m in OBLIQUE_METHODS:
+        mine = {_volume(r): r for r in turned if r["method"] == m}
+        if not mine:
+            continue
+        drawn = {_volume(r): r for r in rows if r.get("group") == aligned_group and r["method"] == m
+                 and not r.get("zero_clicks") and _volume(r) in mine}
+        for label, rs in (("as drawn", drawn), ("oblique", mine)):
+            if not rs:
+                continue
+            ok = [r for r in rs.values() if r.get("ok")]
+            q = [r["quality"] for r in ok]
+            vis = [x["visible_fraction"] for x in q]
+            mk = [x["markers"] for x in q if "markers" in x]
+            dist = [x["pairwise_distance_distortion"] for x in mk if x.get("pairwise_distance_distortion") is not None]
+            row = {"method": m, "grid": label, "runs": len(rs), "failed": len(rs) - len(ok),
+                   "excellent": sum(x["grade"] == "excellent" for x in q),
+                   "good_or_better": sum(x["grade"] in ("excellent", "good") for x in q),
+                   "visible_median": float(np.median(vis)) if vis else None,
+                   "visible_min": float(np.min(vis)) if vis else None,
+                   "markers_seen": sum(x["seen"] for x in mk), "markers_total": sum(x["total"] for x in mk),
+                   "distortion_median": float(np.median(dist)) if dist else None,
+                   "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None}
+            if label == "oblique" and drawn:
+                both = [(r, drawn[v]) for v, r in rs.items() if r.get("ok") and v in drawn and drawn[v].get("ok")]
+                row["visible_lower"] = sorted(_volume(a) for a, b in both if a["quality"]["visible_fraction"]
+                                              < b["quality"]["visible_fraction"] - VISIBLE_DROP)
+                row["fewer_markers"] = sorted(_volume(a) for a, b in both
+                                              if "markers" in a["quality"] and "markers" in b["quality"]
+                                              and a["quality"]["markers"]["seen"] < b["quality"]["markers"]["seen"])
+                row["errors"] = sorted({str(r.get("error", "")).split(";")[0][:90] for r in rs.values()
+                                        if not r.get("ok")})
+            out.append(row)
+    return out
+
+
+def oblique_markdown(rows: list[dict], aligned_group: str) -> list[str]:
+    """results.md's table of :func:`oblique_summary` (nothing when the part was not run)."""
+    summ = oblique_summary(rows, aligned_group)
+    if not summ:
+        return []
+    lo, hi = OBLIQUE_DEGREES
+    L = [f"## Oblique voxel grids: the held-out random stomachs resampled onto grids turned {lo:g}-{hi:g} degrees\n",
+         "Each volume's grid turned about a random axis (drawn per seed, the same for every method), the voxels the "
+         "same size, the anatomy, points and markers at the same LPS places; *as drawn*: the `stomachs` part's rows on "
+         f"the same volumes. *lower*: volumes whose visible mucosa falls by over {100 * VISIBLE_DROP:g} point on the "
+         "turned grid; *fewer markers*: volumes that see fewer markers than as drawn.\n",
+         "| method | grid | runs | failed | excellent | good or better | visible median / min % | markers | "
+         "distortion median | s median | lower | fewer markers |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+
+    def pc(v):
+        return "" if v is None else f"{100 * v:.2f}"
+
+    def f3(v, fmt):
+        return "" if v is None else fmt.format(v)
+    for x in summ:
+        lower = ", ".join(x["visible_lower"]) if "visible_lower" in x else ""
+        fewer = ", ".join(x["fewer_markers"]) if "fewer_markers" in x else ""
+        L.append(f"| {x['method']} | {x['grid']} | {x['runs']} | {x['failed']} | {x['excellent']} | "
+                 f"{x['good_or_better']} | {pc(x['visible_median'])} / {pc(x['visible_min'])} | "
+                 f"{x['markers_seen']}/{x['markers_total']} | {f3(x['distortion_median'], '{:.4f}')} | "
+                 f"{f3(x['seconds_median'], '{:.1f}')} | {lower or ('none' if x['grid'] == 'oblique' else '')} | "
+                 f"{fewer or ('none' if x['grid'] == 'oblique' else '')} |")
+    errs = [(x["method"], e) for x in summ for e in x.get("errors", [])]
+    if errs:
+        L.append("")
+        L.append("Why runs failed: " + "; ".join(f"{m}: \"{e}\"" for m, e in errs) + ".")
+    return L + [""]
