@@ -1,4 +1,5 @@
-"""The ``oblique`` part of ``stomach-unfold bench``: each method on random stomachs resampled onto oblique voxel grids.
+"""The ``oblique`` and ``prone`` parts of ``stomach-unfold bench``: each method on random stomachs resampled onto
+oblique voxel grids, and on the same stomachs as a prone patient's scans.
 
 The family draws its volumes with axis-aligned, permuted or flipped direction matrices only. A CT reformatted along
 an oblique plane, a volume cropped with a turned region of interest in Slicer, or a scan with gantry tilt resampled
@@ -8,8 +9,15 @@ anatomy at the same LPS places, the voxels the same size, sampled anew (trilinea
 points and markers are unchanged (LPS mm). Its table sets each method's oblique runs beside its own rows on the same
 volumes as drawn (the ``stomachs`` part's): grades, visible mucosa, markers, distortion, time, and the volumes that
 lose against their axis-aligned run.
+
+The family draws supine patients: the water lies on the posterior wall (LPS +y). The ``prone`` part mirrors each
+held-out stomach front to back (:func:`turned_over`: the same voxels with LPS y negated, the truth mirrored with
+them), so its water lies on the anterior wall, as a prone patient's does, and the stomach keeps its left and right
+(its greater curvature to the patient's left, where the incision's fallback looks); only its front and back swap.
 """
 from __future__ import annotations
+
+import copy
 
 import numpy as np
 
@@ -19,13 +27,16 @@ from StomachUnfoldLib.geometry import Volume
 OBLIQUE_DEGREES = (15.0, 40.0)
 #: The methods run on the turned grids (mass-spring takes minutes per volume and is left out).
 OBLIQUE_METHODS = ("isometric", "cylindrical", "lscm")
-#: The rows' group in results.json.
+#: The rows' group in results.json (part ``oblique``; part ``prone``: PRONE_GROUP).
 GROUP = "oblique"
+PRONE_GROUP = "prone"
+#: LPS mirrored front to back (y negated): a supine scene whose water then lies anteriorly, as a prone patient's.
+TURN_OVER = np.diag([1.0, -1.0, 1.0])
 #: A volume counts as losing on its turned grid when its visible mucosa falls by more than this (fraction).
 VISIBLE_DROP = 0.005
 
-__all__ = ["turned_grid", "grid_turn", "oblique_cases", "oblique_summary", "oblique_markdown", "OBLIQUE_DEGREES",
-           "OBLIQUE_METHODS", "GROUP"]
+__all__ = ["turned_grid", "grid_turn", "turned_over", "oblique_cases", "prone_cases", "oblique_summary",
+           "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS", "GROUP", "PRONE_GROUP"]
 
 
 def _rotation(axis, degrees: float) -> np.ndarray:
@@ -69,6 +80,37 @@ def turned_grid(ct: Volume, degrees: float, axis=(1.0, 2.0, 3.0), background_hu:
     return vol.with_array(np.rint(vol.array).astype(np.int16))
 
 
+def _turned_truth(x, key: str = ""):
+    """A truth record (dicts, lists) with every LPS or RAS point or vector (a key ending in lps or ras: the last axis
+    of length 3) mirrored by TURN_OVER, and ``fluid_level_lps_y`` (mm) negated."""
+    if isinstance(x, dict):
+        return {k: (-v if k == "fluid_level_lps_y" and v is not None else _turned_truth(v, k)) for k, v in x.items()}
+    if key.lower().endswith(("lps", "ras")):
+        a = np.asarray(x, float)
+        if a.ndim >= 1 and a.shape[-1] == 3:
+            return (a @ TURN_OVER.T).tolist()
+    if isinstance(x, list):
+        return [_turned_truth(v, key) for v in x]
+    return x
+
+
+def turned_over(ct: Volume, truth: dict) -> tuple[Volume, dict]:
+    """The CT (HU) and its truth as a prone patient's scan: the same voxels with LPS y negated (TURN_OVER, front to
+    back), so the water a supine drawing put on the posterior wall lies on the anterior one; every LPS point (mm) of
+    the truth mirrored too."""
+    vol = Volume(ct.array, ct.spacing, TURN_OVER @ np.asarray(ct.origin, float),
+                 TURN_OVER @ np.asarray(ct.direction, float))
+    return vol, _turned_truth(copy.deepcopy(truth))
+
+
+def prone_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
+    """The ``prone`` part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed, each stomach mirrored front
+    to back (:func:`turned_over`)."""
+    seeds = list(seeds[:2]) if quick else list(seeds)
+    return [case(f"stomach-{seed}/{m}-prone", {"random": int(seed), "size": "small", "_cache": cache, "prone": True},
+                 {}, method=m, group=PRONE_GROUP) for m in OBLIQUE_METHODS for seed in seeds]
+
+
 def oblique_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
     """The part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed, each seed's grid turned by grid_turn."""
     seeds = list(seeds[:2]) if quick else list(seeds)
@@ -82,12 +124,13 @@ def _volume(row: dict) -> str:
     return row["name"].split("/")[0]
 
 
-def oblique_summary(rows: list[dict], aligned_group: str) -> list[dict]:
+def oblique_summary(rows: list[dict], aligned_group: str, group: str = GROUP) -> list[dict]:
     """Per method, the oblique runs and the same method's rows on the same volumes as drawn (``aligned_group``'s, the
     true points): runs, failed, excellent, good or better, visible median and minimum, markers, distortion median,
     time median (s), and on the oblique grid the volumes whose visible mucosa falls by over VISIBLE_DROP or that see
     fewer markers than as drawn."""
-    turned = [r for r in rows if r.get("group") == GROUP]
+    turned = [r for r in rows if r.get("group") == group]
+    label_turned = "prone" if group == PRONE_GROUP else "oblique"
     out = []
     for m in OBLIQUE_METHODS:
         mine = {_volume(r): r for r in turned if r["method"] == m}
@@ -95,7 +138,7 @@ def oblique_summary(rows: list[dict], aligned_group: str) -> list[dict]:
             continue
         drawn = {_volume(r): r for r in rows if r.get("group") == aligned_group and r["method"] == m
                  and not r.get("zero_clicks") and _volume(r) in mine}
-        for label, rs in (("as drawn", drawn), ("oblique", mine)):
+        for label, rs in (("as drawn", drawn), (label_turned, mine)):
             if not rs:
                 continue
             ok = [r for r in rs.values() if r.get("ok")]
@@ -111,7 +154,7 @@ def oblique_summary(rows: list[dict], aligned_group: str) -> list[dict]:
                    "markers_seen": sum(x["seen"] for x in mk), "markers_total": sum(x["total"] for x in mk),
                    "distortion_median": float(np.median(dist)) if dist else None,
                    "seconds_median": float(np.median([r["seconds"] for r in ok])) if ok else None}
-            if label == "oblique" and drawn:
+            if label != "as drawn" and drawn:
                 both = [(r, drawn[v]) for v, r in rs.items() if r.get("ok") and v in drawn and drawn[v].get("ok")]
                 row["visible_lower"] = sorted(_volume(a) for a, b in both if a["quality"]["visible_fraction"]
                                               < b["quality"]["visible_fraction"] - VISIBLE_DROP)
@@ -124,19 +167,29 @@ def oblique_summary(rows: list[dict], aligned_group: str) -> list[dict]:
     return out
 
 
-def oblique_markdown(rows: list[dict], aligned_group: str) -> list[str]:
-    """results.md's table of :func:`oblique_summary` (nothing when the part was not run)."""
-    summ = oblique_summary(rows, aligned_group)
+def oblique_markdown(rows: list[dict], aligned_group: str, group: str = GROUP) -> list[str]:
+    """results.md's table of :func:`oblique_summary` for ``group`` (nothing when its part was not run)."""
+    summ = oblique_summary(rows, aligned_group, group)
     if not summ:
         return []
     lo, hi = OBLIQUE_DEGREES
-    L = [f"## Oblique voxel grids: the held-out random stomachs resampled onto grids turned {lo:g}-{hi:g} degrees\n",
-         "Each volume's grid turned about a random axis (drawn per seed, the same for every method), the voxels the "
-         "same size, the anatomy, points and markers at the same LPS places; *as drawn*: the `stomachs` part's rows on "
-         f"the same volumes. *lower*: volumes whose visible mucosa falls by over {100 * VISIBLE_DROP:g} point on the "
-         "turned grid; *fewer markers*: volumes that see fewer markers than as drawn.\n",
-         "| method | grid | runs | failed | excellent | good or better | visible median / min % | markers | "
-         "distortion median | s median | lower | fewer markers |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    if group == PRONE_GROUP:
+        head = ["## Prone: the held-out random stomachs mirrored front to back, their water on the anterior wall\n",
+                "Each volume's voxels with LPS y negated (points and markers mirrored with them), as a prone "
+                "patient's scan; *as drawn*: the `stomachs` part's rows on the same volumes. *lower*: volumes whose "
+                f"visible mucosa falls by over {100 * VISIBLE_DROP:g} point mirrored; *fewer markers*: volumes that "
+                "see fewer markers than as drawn.\n"]
+    else:
+        head = [f"## Oblique voxel grids: the held-out random stomachs resampled onto grids turned {lo:g}-{hi:g} "
+                "degrees\n",
+                "Each volume's grid turned about a random axis (drawn per seed, the same for every method), the voxels "
+                "the same size, the anatomy, points and markers at the same LPS places; *as drawn*: the `stomachs` "
+                f"part's rows on the same volumes. *lower*: volumes whose visible mucosa falls by over "
+                f"{100 * VISIBLE_DROP:g} point on the turned grid; *fewer markers*: volumes that see fewer markers "
+                "than as drawn.\n"]
+    L = head + [
+        "| method | grid | runs | failed | excellent | good or better | visible median / min % | markers | "
+        "distortion median | s median | lower | fewer markers |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def pc(v):
         return "" if v is None else f"{100 * v:.2f}"
@@ -149,8 +202,8 @@ def oblique_markdown(rows: list[dict], aligned_group: str) -> list[str]:
         L.append(f"| {x['method']} | {x['grid']} | {x['runs']} | {x['failed']} | {x['excellent']} | "
                  f"{x['good_or_better']} | {pc(x['visible_median'])} / {pc(x['visible_min'])} | "
                  f"{x['markers_seen']}/{x['markers_total']} | {f3(x['distortion_median'], '{:.4f}')} | "
-                 f"{f3(x['seconds_median'], '{:.1f}')} | {lower or ('none' if x['grid'] == 'oblique' else '')} | "
-                 f"{fewer or ('none' if x['grid'] == 'oblique' else '')} |")
+                 f"{f3(x['seconds_median'], '{:.1f}')} | {lower or ('none' if 'visible_lower' in x else '')} | "
+                 f"{fewer or ('none' if 'fewer_markers' in x else '')} |")
     errs = [(x["method"], e) for x in summ for e in x.get("errors", [])]
     if errs:
         L.append("")

@@ -773,32 +773,58 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     ``warnings`` (list of str).
     """
     air = np.asarray(air, bool)
-    info = {"fluid_voxels": 0, "fluid_ml": 0.0, "fluid_level_lps_y": None, "warnings": []}
+    info = {"fluid_voxels": 0, "fluid_ml": 0.0, "fluid_level_lps_y": None, "fluid_dependent_side": None,
+            "fluid_level_text": None, "warnings": []}
     none = np.zeros(air.shape, bool)
     if not air.any() or max_hu <= FLUID_MIN_HU:
         return none, info
-    found = (_fluid_upright if _tilt_deg(ct) > UPRIGHT_TILT_DEG else _fluid_on_grid)(
-        ct, air, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
-    if found is None:
-        return none, info
-    fluid, level_y = found
-    n = int(np.count_nonzero(fluid))
-    info["fluid_level_lps_y"] = level_y
-    ras = f"LPS y = {level_y:.1f} mm (RAS A = {-level_y:.1f} mm)"
-    n_air = int(np.count_nonzero(air))
-    problem = ""
-    if n > max_air_ratio * n_air:
-        problem = f"is {n / max(n_air, 1):.1f} times the air volume (over {max_air_ratio:g})"
-    elif _touches_faces(fluid, (0, 1, 2)):
-        problem = "reaches the side of the volume"
-    if problem:
-        info["warnings"].append(f"a flat air-fluid level was found at {ras} but the fluid-like voxels below it "
-                                f"{problem}: they leak into the body and were not added to the lumen (check "
-                                "the CT, or pass a stomach label with --mask)")
-        return none, info
-    info["fluid_voxels"] = n
-    info["fluid_ml"] = n * float(np.prod(ct.spacing)) / 1000.0
-    return fluid, info
+    for side, gravity in DEPENDENT_SIDES.items():
+        # the CT's frame turned about the S axis so that this side lies along +y (the same voxels, LPS relabelled)
+        Q = _turn_to_posterior(gravity)
+        ct_g = ct if side == "posterior" else Volume(ct.array, ct.spacing, Q @ np.asarray(ct.origin, float),
+                                                     Q @ np.asarray(ct.direction, float))
+        found = (_fluid_upright if _tilt_deg(ct_g) > UPRIGHT_TILT_DEG else _fluid_on_grid)(
+            ct_g, air, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
+        if found is None:
+            continue
+        fluid, level = found
+        n = int(np.count_nonzero(fluid))
+        axis = "y" if gravity[1] else "x"
+        at = level if gravity[0] + gravity[1] > 0 else -level     # the level's LPS coordinate along its axis (mm)
+        ras = f"LPS {axis} = {at:.1f} mm (RAS {'A' if axis == 'y' else 'R'} = {-at:.1f} mm)"
+        n_air = int(np.count_nonzero(air))
+        problem = ""
+        if n > max_air_ratio * n_air:
+            problem = f"is {n / max(n_air, 1):.1f} times the air volume (over {max_air_ratio:g})"
+        elif _touches_faces(fluid, (0, 1, 2)):
+            problem = "reaches the side of the volume"
+        if problem and side != "posterior":
+            continue                                   # another side's "water" leaking: not a level at all
+        info.update(fluid_level_lps_y=at if axis == "y" else None, fluid_dependent_side=side, fluid_level_text=ras)
+        if problem:
+            info["warnings"].append(f"a flat air-fluid level was found at {ras} but the fluid-like voxels below it "
+                                    f"{problem}: they leak into the body and were not added to the lumen (check "
+                                    "the CT, or pass a stomach label with --mask)")
+            return none, info
+        info["fluid_voxels"] = n
+        info["fluid_ml"] = n * float(np.prod(ct.spacing)) / 1000.0
+        return fluid, info
+    return none, info
+
+
+#: The sides of the stomach its water may lie on, in the order they are tried, each with its direction in LPS: the
+#: posterior wall of a supine patient first, then the anterior of a prone one and the left and right of a patient on
+#: that side (decubitus); the first whose air has a flat level with water under it is taken. A level on another side
+#: whose water would leak is not one (no warning; the posterior side's leak is said, as before).
+DEPENDENT_SIDES = {"posterior": (0.0, 1.0, 0.0), "anterior": (0.0, -1.0, 0.0), "left": (1.0, 0.0, 0.0),
+                   "right": (-1.0, 0.0, 0.0)}
+
+
+def _turn_to_posterior(gravity) -> np.ndarray:
+    """Rotation (3x3) about LPS z that takes the unit vector ``gravity`` (along +-x or +-y) onto +y."""
+    g = np.asarray(gravity, float)
+    c, s = g[1], g[0]                                  # the angle from +y to g, about z: g = (sin, cos)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0, max_snap_mm: float = 20.0,
@@ -902,9 +928,12 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
         lo, hi = bounding_box(fluid)
         box = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
         region[box] |= fluid[box]  # in the fluid's box only: the rest of region stays untouched zero pages
-        warnings.append(f"retained fluid below an air-fluid level at LPS y = {info['fluid_level_lps_y']:.1f} mm "
-                        f"(RAS A = {-info['fluid_level_lps_y']:.1f} mm), {info['fluid_ml']:.0f} mL, was added to "
-                        "the lumen; its contents are shown as air and the wall is bounded by the lumen")
+        side = info["fluid_dependent_side"]
+        warnings.append(f"retained fluid below an air-fluid level at {info['fluid_level_text']}"
+                        + ("" if side == "posterior" else f", on the {side} wall ("
+                           + ("a prone scan" if side == "anterior" else f"the patient on the {side} side") + ")")
+                        + f", {info['fluid_ml']:.0f} mL, was added to the lumen; its contents are shown as air "
+                        "and the wall is bounded by the lumen")
     if progress is not None:
         progress(1.0)
     return region, info

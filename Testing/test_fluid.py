@@ -26,11 +26,13 @@ REGULAR = ["identity", "flipped", "y_on_k"]
 
 
 def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, level_y=LEVEL_Y, noise_hu=25.0,
-            water_hu=10.0):
+            water_hu=10.0, dependent=(0.0, 1.0, 0.0)):
     """(Volume in HU, true fluid mask, true lumen mask) of the synthetic stomach; contents below the level:
     'water' (``water_hu`` HU), 'gas' (none: all air), 'tissue' (50 HU: a flat air boundary on solid tissue), 'leak'
     (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm); ``level_y``: LPS y of
-    the level (mm; the lumen reaches y = 22 mm); ``noise_hu``: the noise's standard deviation (HU)."""
+    the level (mm; the lumen reaches y = 22 mm); ``noise_hu``: the noise's standard deviation (HU); ``dependent``: the
+    LPS direction the water lies toward (supine: +y; prone: -y; on the left side: +x), the level ``level_y`` mm along
+    it."""
     sp, D = GEOMETRIES[geometry]
     sp = np.asarray(sp, float)
     lps_axis = np.argmax(np.abs(D), axis=0)                 # LPS axis of each of i, j, k
@@ -43,7 +45,7 @@ def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, level_y=
     r_in = np.sqrt((x / 42.0) ** 2 + (y / 22.0) ** 2 + (z / 20.0) ** 2)
     r_out = np.sqrt((x / (42.0 + wall_mm)) ** 2 + (y / (22.0 + wall_mm)) ** 2 + (z / (20.0 + wall_mm)) ** 2)
     lumen = r_in < 1.0
-    below = lumen & (y > level_y)
+    below = lumen & (P @ np.asarray(dependent, float) > level_y)
     hu = np.full(len(P), -90.0, np.float32)                   # fat
     hu[r_out < 1.0] = 50.0                                    # wall
     hu[lumen] = -1000.0
@@ -263,3 +265,32 @@ def test_thick_mode_counts_evidence_only_on_slices_over_3_mm(monkeypatch):
     assert not np.array_equal(got["threshold"][0], got["evidence"][0])
     assert np.array_equal(got["thick"][0], got["evidence"][0])
     assert np.array_equal(got["thick"][1], got["threshold"][1])
+
+
+@pytest.mark.parametrize("side", ["anterior", "left", "right"])
+def test_water_on_another_side_than_the_back_joins_the_lumen(side):
+    """A prone patient's water lies on the anterior wall, a patient on one side has it on that side (decubitus): the
+    level is found there, said in the warning, and the pool joins the lumen; the posterior side is tried first."""
+    from StomachUnfoldLib.preprocessing import DEPENDENT_SIDES
+
+    g = np.asarray(DEPENDENT_SIDES[side])
+    ct, fluid_true, lumen_true = make_ct("identity", dependent=g, level_y=8.0 if g[0] else LEVEL_Y)
+    # both points in the air: on its side of a left or right level
+    pts = (CARDIA, PYLORUS) if not g[0] else tuple(np.array([x * -g[0], -8.0, 0.0]) for x in (30.0, 0.0))
+    lumen, info = air_region(ct, *pts)
+    air, _ = air_region(ct, *pts, fluid_max_hu=-1000.0)
+    assert info["fluid_dependent_side"] == side and info["fluid_voxels"] > 0
+    assert dice(lumen & ~air, fluid_true) > 0.9 and dice(lumen, lumen_true) > 0.95
+    axis = "y" if g[1] else "x"
+    level = (8.0 if g[0] else LEVEL_Y) * float(g.sum())         # the level's LPS coordinate along its axis
+    assert info["fluid_level_text"].startswith(f"LPS {axis} = ")
+    assert abs(float(info["fluid_level_text"].split("=")[1].split("mm")[0]) - level) <= 1.5
+    assert (info["fluid_level_lps_y"] is None) == (axis == "x")
+    said = [m for m in info["warnings"] if "retained fluid below an air-fluid level" in m]
+    assert len(said) == 1 and f"on the {side} wall" in said[0]
+    # the same stomach supine: the posterior side, and the warning as it always read
+    ct_s, _, _ = make_ct("identity")
+    info_s = air_region(ct_s, CARDIA, PYLORUS)[1]
+    assert info_s["fluid_dependent_side"] == "posterior"
+    assert any(m.startswith(f"retained fluid below an air-fluid level at LPS y = {info_s['fluid_level_lps_y']:.1f} mm "
+                            f"(RAS A = {-info_s['fluid_level_lps_y']:.1f} mm), ") for m in info_s["warnings"])

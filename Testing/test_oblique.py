@@ -1,4 +1,5 @@
-"""The bench's ``oblique`` part: a CT resampled onto a turned voxel grid keeps its anatomy in place and unfolds as drawn."""
+"""The bench's ``oblique`` and ``prone`` parts: a CT resampled onto a turned voxel grid keeps its anatomy in place and
+unfolds as drawn; a stomach mirrored front to back (its water on the anterior wall, as a prone patient's) too."""
 import numpy as np
 
 from conftest import FLIP
@@ -7,7 +8,8 @@ from StomachUnfoldLib.geometry import Volume
 
 
 def _ball_ct(direction) -> tuple[Volume, np.ndarray]:
-    """A -1000 HU box (1.2 x 1.2 x 2 mm voxels, the given direction) with an 800 HU ball of 4 mm radius; its centre (LPS mm)."""
+    """A -1000 HU box (1.2 x 1.2 x 2 mm voxels, the given direction) with an 800 HU ball of 4 mm radius, and its centre
+    (LPS mm)."""
     shape = (30, 50, 50)                                          # (k, j, i)
     vol = Volume(np.full(shape, -1000, np.int16), np.array([1.2, 1.2, 2.0]), np.array([10.0, -20.0, 5.0]),
                  np.asarray(direction, float))
@@ -109,3 +111,41 @@ def test_water_on_an_oblique_grid_is_the_pool_as_drawn(monkeypatch):
     monkeypatch.setattr(pre, "UPRIGHT_TILT_DEG", 90.0)          # the rays along the tilted grid axis
     old = lumen_against_drawn(turned, truth, pre.air_region(turned, cardia, pylorus)[0], region="water")
     assert old["missed"] > 0.05 * old["drawn"]
+
+
+def test_turned_over_keeps_the_voxels_and_mirrors_every_lps_point_of_the_truth_front_to_back():
+    from StomachUnfoldEval.oblique import TURN_OVER, turned_over
+
+    ct, _ = _ball_ct(np.eye(3))
+    truth = {"cardia_lps": [1.0, 2.0, 3.0], "fluid_level_lps_y": 20.0, "spacing": [1.0, 1.0, 2.0],
+             "markers": [{"id": "M01", "lps": [4.0, -5.0, 6.0], "normal_lps": [0.0, 1.0, 0.0],
+                          "ras": [-4.0, 5.0, 6.0]}],
+             "centerline_lps": [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]]}
+    vol, t = turned_over(ct, truth)
+    assert vol.array is ct.array and np.allclose(vol.spacing, ct.spacing)
+    ijk = np.array([[3.0, 7.0, 2.0]])
+    assert np.allclose(vol.index_to_lps(ijk), ct.index_to_lps(ijk) @ TURN_OVER.T)   # each voxel mirrored
+    assert t["cardia_lps"] == [1.0, -2.0, 3.0] and t["fluid_level_lps_y"] == -20.0 and t["spacing"] == [1.0, 1.0, 2.0]
+    m = t["markers"][0]
+    assert m["lps"] == [4.0, 5.0, 6.0] and m["normal_lps"] == [0.0, -1.0, 0.0] and m["ras"] == [-4.0, -5.0, 6.0]
+    assert t["centerline_lps"] == [[0.0, -1.0, 2.0], [3.0, -4.0, 5.0]]
+    assert truth["cardia_lps"] == [1.0, 2.0, 3.0]                   # the truth given is left as it was
+
+
+def test_a_prone_stomachs_water_is_found_on_its_anterior_wall_and_the_markers_under_it_seen(tmp_path):
+    """Tiny random stomach 2 (57 mL of water) mirrored front to back: the water is found on the anterior wall, said
+    so, and the default method sees the markers under it as it does supine (before, the water's surface was drawn as
+    mucosa and the judge, bounded by the same lumen, graded the view excellent all the same)."""
+    from StomachUnfoldEval.bench import Case, run_case
+
+    src = {"random": 2, "size": "tiny", "_cache": str(tmp_path)}
+    supine = run_case(Case("stomach-2/isometric", src, {}, method="isometric", group="stomachs-held-out"))
+    prone = run_case(Case("stomach-2/isometric-prone", {**src, "prone": True}, {}, method="isometric",
+                          group="prone"))
+    assert supine["ok"] and prone["ok"], (supine.get("error"), prone.get("error"))
+    said = [w for w in prone["warnings"] if "retained fluid below an air-fluid level" in w]
+    assert len(said) == 1 and "on the anterior wall (a prone scan)" in said[0]
+    a = supine["quality"]["markers"]["by_region"]["under_fluid"]
+    b = prone["quality"]["markers"]["by_region"]["under_fluid"]
+    assert a[1] == b[1] >= 2 and b[0] >= a[0] - 1 and b[0] >= b[1] - 1
+    assert prone["quality"]["grade"] == "excellent"
