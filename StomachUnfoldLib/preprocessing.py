@@ -744,10 +744,13 @@ def _fluid_upright(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
 def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, threshold_hu: float = -500.0,
                       min_level_mm2: float = 300.0, max_depth_mm: float = 120.0,
                       max_air_ratio: float = 2.0) -> tuple[np.ndarray, dict]:
-    """Retained fluid (bool mask on ct's grid) under a flat horizontal air-fluid level (LPS y = const, mm) of ``air``.
+    """Retained fluid (bool mask on ct's grid) under a flat air-fluid level of ``air`` on its dependent side (LPS mm).
 
-    A supine stomach's water lies on the posterior (LPS +y) wall under a flat level. The level is the air
-    region's flat posterior boundary (:func:`_level_patch`; none: no fluid, nothing changes). From each of its
+    A supine stomach's water lies on the posterior (LPS +y) wall under a flat level; a prone one's on the anterior
+    wall, and a patient lying on a side has it on that side: the sides of DEPENDENT_SIDES are tried in turn (the
+    CT's frame turned about the S axis so that the side lies along +y; below, "posterior" is that side) and the first
+    with a level that has water under it is taken (another side's whose water would leak is passed over). The
+    level is the air region's flat posterior boundary (:func:`_level_patch`; none: no fluid, nothing changes). From each of its
     voxels a ray is cast posteriorly along the grid axis closest to +y through the CT lightly smoothed
     (Gaussian, one voxel or 1.5 mm if less): it crosses the partial-volume voxels of the first 3 mm (air and
     water) and goes on while the HU stays in the water range [``FLUID_MIN_HU``, ``max_hu``] (HU; the wall is
@@ -769,8 +772,9 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
 
     Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
-    of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level),
-    ``warnings`` (list of str).
+    of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level or a level on the left or
+    right), ``fluid_dependent_side`` (a key of DEPENDENT_SIDES or None), ``fluid_level_text`` (the level's LPS and
+    RAS coordinate, for messages) and ``warnings`` (list of str).
     """
     air = np.asarray(air, bool)
     info = {"fluid_voxels": 0, "fluid_ml": 0.0, "fluid_level_lps_y": None, "fluid_dependent_side": None,
