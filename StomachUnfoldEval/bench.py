@@ -20,7 +20,7 @@ from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
 from .memory import memory_markdown, memory_plot, memory_runs
-from .oblique import PRONE_GROUP, oblique_cases, oblique_markdown, prone_cases, turned_grid, turned_over
+from .oblique import PRONE_GROUP, front_to_back, oblique_cases, oblique_markdown, prone_cases, turned_grid
 from .raster_phase import phase_cases, phase_markdown
 from .regional import area_scale_along, area_scale_summary
 
@@ -157,7 +157,7 @@ def _load(source: dict):
         if source.get("turn"):  # resampled onto an oblique grid (part ``oblique``): the same anatomy, LPS unchanged
             ct = turned_grid(ct, source["turn"]["degrees"], source["turn"]["axis"])
         if source.get("prone"):  # mirrored front to back (part ``prone``): the water on the anterior wall
-            ct, truth = turned_over(ct, truth)
+            ct, truth = front_to_back(ct, truth)
         markers = {m["id"]: m["lps"] for m in truth["markers"]}
         if source.get("auto_points"):  # zero clicks: the points found as `unfold --auto-points` finds them
             from .auto_points import found_versus_truth

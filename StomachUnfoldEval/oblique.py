@@ -11,7 +11,7 @@ volumes as drawn (the ``stomachs`` part's): grades, visible mucosa, markers, dis
 lose against their axis-aligned run.
 
 The family draws supine patients: the water lies on the posterior wall (LPS +y). The ``prone`` part mirrors each
-held-out stomach front to back (:func:`turned_over`: the same voxels with LPS y negated, the truth mirrored with
+held-out stomach front to back (:func:`front_to_back`: the same voxels with LPS y negated, the truth mirrored with
 them), so its water lies on the anterior wall, as a prone patient's does, and the stomach keeps its left and right
 (its greater curvature to the patient's left, where the incision's fallback looks); only its front and back swap.
 """
@@ -31,11 +31,11 @@ OBLIQUE_METHODS = ("isometric", "cylindrical", "lscm")
 GROUP = "oblique"
 PRONE_GROUP = "prone"
 #: LPS mirrored front to back (y negated): a supine scene whose water then lies anteriorly, as a prone patient's.
-TURN_OVER = np.diag([1.0, -1.0, 1.0])
+FRONT_TO_BACK = np.diag([1.0, -1.0, 1.0])
 #: A volume counts as losing on its turned grid when its visible mucosa falls by more than this (fraction).
 VISIBLE_DROP = 0.005
 
-__all__ = ["turned_grid", "grid_turn", "turned_over", "oblique_cases", "prone_cases", "oblique_summary",
+__all__ = ["turned_grid", "grid_turn", "front_to_back", "oblique_cases", "prone_cases", "oblique_summary",
            "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS", "GROUP", "PRONE_GROUP"]
 
 
@@ -80,32 +80,32 @@ def turned_grid(ct: Volume, degrees: float, axis=(1.0, 2.0, 3.0), background_hu:
     return vol.with_array(np.rint(vol.array).astype(np.int16))
 
 
-def _turned_truth(x, key: str = ""):
+def _mirrored_truth(x, key: str = ""):
     """A truth record (dicts, lists) with every LPS or RAS point or vector (a key ending in lps or ras: the last axis
-    of length 3) mirrored by TURN_OVER, and ``fluid_level_lps_y`` (mm) negated."""
+    of length 3) mirrored by FRONT_TO_BACK, and ``fluid_level_lps_y`` (mm) negated."""
     if isinstance(x, dict):
-        return {k: (-v if k == "fluid_level_lps_y" and v is not None else _turned_truth(v, k)) for k, v in x.items()}
+        return {k: (-v if k == "fluid_level_lps_y" and v is not None else _mirrored_truth(v, k)) for k, v in x.items()}
     if key.lower().endswith(("lps", "ras")):
         a = np.asarray(x, float)
         if a.ndim >= 1 and a.shape[-1] == 3:
-            return (a @ TURN_OVER.T).tolist()
+            return (a @ FRONT_TO_BACK.T).tolist()
     if isinstance(x, list):
-        return [_turned_truth(v, key) for v in x]
+        return [_mirrored_truth(v, key) for v in x]
     return x
 
 
-def turned_over(ct: Volume, truth: dict) -> tuple[Volume, dict]:
-    """The CT (HU) and its truth as a prone patient's scan: the same voxels with LPS y negated (TURN_OVER, front to
-    back), so the water a supine drawing put on the posterior wall lies on the anterior one; every LPS point (mm) of
-    the truth mirrored too."""
-    vol = Volume(ct.array, ct.spacing, TURN_OVER @ np.asarray(ct.origin, float),
-                 TURN_OVER @ np.asarray(ct.direction, float))
-    return vol, _turned_truth(copy.deepcopy(truth))
+def front_to_back(ct: Volume, truth: dict) -> tuple[Volume, dict]:
+    """The CT (HU) and its truth as a prone patient's scan: the same voxels with LPS y negated (FRONT_TO_BACK), so the
+    water a supine drawing put on the posterior wall lies on the anterior one; every LPS point (mm) of the truth
+    mirrored too."""
+    vol = Volume(ct.array, ct.spacing, FRONT_TO_BACK @ np.asarray(ct.origin, float),
+                 FRONT_TO_BACK @ np.asarray(ct.direction, float))
+    return vol, _mirrored_truth(copy.deepcopy(truth))
 
 
 def prone_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
     """The ``prone`` part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed, each stomach mirrored front
-    to back (:func:`turned_over`)."""
+    to back (:func:`front_to_back`)."""
     seeds = list(seeds[:2]) if quick else list(seeds)
     return [case(f"stomach-{seed}/{m}-prone", {"random": int(seed), "size": "small", "_cache": cache, "prone": True},
                  {}, method=m, group=PRONE_GROUP) for m in OBLIQUE_METHODS for seed in seeds]

@@ -113,18 +113,18 @@ def test_water_on_an_oblique_grid_is_the_pool_as_drawn(monkeypatch):
     assert old["missed"] > 0.05 * old["drawn"]
 
 
-def test_turned_over_keeps_the_voxels_and_mirrors_every_lps_point_of_the_truth_front_to_back():
-    from StomachUnfoldEval.oblique import TURN_OVER, turned_over
+def test_front_to_back_keeps_the_voxels_and_mirrors_every_lps_point_of_the_truth():
+    from StomachUnfoldEval.oblique import FRONT_TO_BACK, front_to_back
 
     ct, _ = _ball_ct(np.eye(3))
     truth = {"cardia_lps": [1.0, 2.0, 3.0], "fluid_level_lps_y": 20.0, "spacing": [1.0, 1.0, 2.0],
              "markers": [{"id": "M01", "lps": [4.0, -5.0, 6.0], "normal_lps": [0.0, 1.0, 0.0],
                           "ras": [-4.0, 5.0, 6.0]}],
              "centerline_lps": [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]]}
-    vol, t = turned_over(ct, truth)
+    vol, t = front_to_back(ct, truth)
     assert vol.array is ct.array and np.allclose(vol.spacing, ct.spacing)
     ijk = np.array([[3.0, 7.0, 2.0]])
-    assert np.allclose(vol.index_to_lps(ijk), ct.index_to_lps(ijk) @ TURN_OVER.T)   # each voxel mirrored
+    assert np.allclose(vol.index_to_lps(ijk), ct.index_to_lps(ijk) @ FRONT_TO_BACK.T)   # each voxel mirrored
     assert t["cardia_lps"] == [1.0, -2.0, 3.0] and t["fluid_level_lps_y"] == -20.0 and t["spacing"] == [1.0, 1.0, 2.0]
     m = t["markers"][0]
     assert m["lps"] == [4.0, 5.0, 6.0] and m["normal_lps"] == [0.0, -1.0, 0.0] and m["ras"] == [-4.0, -5.0, 6.0]
