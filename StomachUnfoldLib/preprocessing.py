@@ -10,6 +10,8 @@ All points are LPS mm; masks are bool arrays indexed ``[k, j, i]`` on the CT gri
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
 
@@ -577,10 +579,27 @@ def dense_object_edges(fluid: np.ndarray, air: np.ndarray, sm: np.ndarray, max_h
     return out
 
 
+#: Under a flat level whose contents read over this (HU, the median of DENSE_POOL_DEPTH_MM mm under the partial-volume
+#: band, on half the level or more) lies a dense pool (positive oral contrast), not water and not the wall: it is not
+#: taken into the lumen, but said (its surface would be drawn as mucosa; a stomach label clears it).
+DENSE_POOL_HU = 200.0
+DENSE_POOL_DEPTH_MM = 5.0
+
+
+@dataclass
+class _DensePool:
+    """A flat level with dense contents under it: the level's LPS y (mm, in the frame it was found in) and their
+    median HU."""
+
+    level_y: float
+    hu: float
+
+
 def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: float, min_level_mm2: float,
                    max_depth_mm: float):
     """The water under the air's flat level, its rays run down the grid axis closest to LPS +y (see
-    :func:`fluid_below_level`): (fluid mask, level's LPS y mm), or None (no level, or too little water under it)."""
+    :func:`fluid_below_level`): (fluid mask, level's LPS y mm), a _DensePool (the level has dense contents under it), or
+    None (no level, or too little water under it)."""
     shape = air.shape
     ji = air.any(axis=0)  # the air's box, from one projection (the whole-volume reductions cost 3x more)
     j_, i_ = np.flatnonzero(ji.any(axis=1)), np.flatnonzero(ji.any(axis=0))
@@ -631,7 +650,12 @@ def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
     take = offs[None, :] <= np.minimum(run, med + 2)[:, None]
     water = np.count_nonzero(take & ok & (offs[None, :] > n_partial), axis=1) >= 2
     if float(np.mean(water)) < FLUID_MIN_WATER_FRACTION:
-        return None  # a flat air boundary on tissue, not on water
+        # a flat air boundary on tissue, not on water; or on a dense pool (positive oral contrast), said by the caller
+        under = (offs > n_partial) & (offs <= n_partial + max(2, int(np.ceil(DENSE_POOL_DEPTH_MM / w))))
+        hu_under = np.median(np.where(inside[:, under], prof[:, under], np.nan), axis=1)
+        if float(np.mean(np.nan_to_num(hu_under, nan=-1000.0) > DENSE_POOL_HU)) >= 0.5:
+            return _DensePool(level_y, float(np.nanmedian(hu_under)))
+        return None
     # the fluid's floor: the 5 x 5 median of the rays' depths (no pillar left by a ray a noise voxel stopped,
     # no spike where a ray went through a thin wall)
     depth = np.minimum(med, np.count_nonzero(inside, axis=1))
@@ -725,8 +749,8 @@ def _fluid_upright(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
     air_up = ((_resampled(hu_sub, sub, up, True, -1024.0) < threshold_hu)
               & ndimage.binary_dilation(_resampled(air[box], sub, up, False, 0.0) > 0.5, np.ones((3, 3, 3), bool)))
     found = _fluid_on_grid(up, air_up, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
-    if found is None:
-        return None
+    if found is None or isinstance(found, _DensePool):
+        return found
     fluid_up, level_y = found
     f_sub = (_resampled(fluid_up, up, sub, False, 0.0) > 0.5) & ~air[box]
     touching = ndimage.binary_dilation(f_sub) & ndimage.binary_dilation(air[box])
@@ -782,6 +806,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     none = np.zeros(air.shape, bool)
     if not air.any() or max_hu <= FLUID_MIN_HU:
         return none, info
+    dense = None
     for side, gravity in DEPENDENT_SIDES.items():
         # the CT's frame turned about the S axis so that this side lies along +y (the same voxels, LPS relabelled)
         Q = _turn_to_posterior(gravity)
@@ -791,11 +816,12 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
             ct_g, air, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
         if found is None:
             continue
+        if isinstance(found, _DensePool):
+            dense = dense or (side, gravity, found)
+            continue
         fluid, level = found
         n = int(np.count_nonzero(fluid))
-        axis = "y" if gravity[1] else "x"
-        at = level if gravity[0] + gravity[1] > 0 else -level     # the level's LPS coordinate along its axis (mm)
-        ras = f"LPS {axis} = {at:.1f} mm (RAS {'A' if axis == 'y' else 'R'} = {-at:.1f} mm)"
+        ras = _level_text(gravity, level)
         n_air = int(np.count_nonzero(air))
         problem = ""
         if n > max_air_ratio * n_air:
@@ -804,7 +830,8 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
             problem = "reaches the side of the volume"
         if problem and side != "posterior":
             continue                                   # another side's "water" leaking: not a level at all
-        info.update(fluid_level_lps_y=at if axis == "y" else None, fluid_dependent_side=side, fluid_level_text=ras)
+        at = level if gravity[0] + gravity[1] > 0 else -level     # the level's LPS coordinate along its axis (mm)
+        info.update(fluid_level_lps_y=at if gravity[1] else None, fluid_dependent_side=side, fluid_level_text=ras)
         if problem:
             info["warnings"].append(f"a flat air-fluid level was found at {ras} but the fluid-like voxels below it "
                                     f"{problem}: they leak into the body and were not added to the lumen (check "
@@ -813,7 +840,22 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
         info["fluid_voxels"] = n
         info["fluid_ml"] = n * float(np.prod(ct.spacing)) / 1000.0
         return fluid, info
+    if dense is not None:
+        side, gravity, pool = dense
+        info["fluid_dense_hu"] = pool.hu
+        info["warnings"].append(f"a flat level at {_level_text(gravity, pool.level_y)} on the {side} wall has dense "
+                                f"contents under it (median {pool.hu:.0f} HU: oral contrast?); they are not water, so "
+                                "their surface is drawn as mucosa and the wall under them is hidden: pass a stomach "
+                                "label with --mask, whose contents are shown as air")
     return none, info
+
+
+def _level_text(gravity, level: float) -> str:
+    """A level's place for messages: its LPS and RAS coordinate (mm) along the axis of ``gravity`` (+-x or +-y),
+    from ``level``, its coordinate along ``gravity`` itself."""
+    axis = "y" if gravity[1] else "x"
+    at = level if gravity[0] + gravity[1] > 0 else -level
+    return f"LPS {axis} = {at:.1f} mm (RAS {'A' if axis == 'y' else 'R'} = {-at:.1f} mm)"
 
 
 #: The sides of the stomach its water may lie on, in the order they are tried, each with its direction in LPS: the

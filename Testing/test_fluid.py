@@ -29,10 +29,10 @@ def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, level_y=
             water_hu=10.0, dependent=(0.0, 1.0, 0.0)):
     """(Volume in HU, true fluid mask, true lumen mask) of the synthetic stomach; contents below the level:
     'water' (``water_hu`` HU), 'gas' (none: all air), 'tissue' (50 HU: a flat air boundary on solid tissue), 'leak'
-    (water open to the posterior side of the volume); ``wall_mm``: the wall's thickness (mm); ``level_y``: LPS y of
-    the level (mm; the lumen reaches y = 22 mm); ``noise_hu``: the noise's standard deviation (HU); ``dependent``: the
-    LPS direction the water lies toward (supine: +y; prone: -y; on the left side: +x), the level ``level_y`` mm along
-    it."""
+    (water open to the posterior side of the volume), 'contrast' (350 HU: positive oral contrast); ``wall_mm``: the
+    wall's thickness (mm); ``level_y``: LPS y of the level (mm; the lumen reaches y = 22 mm); ``noise_hu``: the
+    noise's standard deviation (HU); ``dependent``: the LPS direction the water lies toward (supine: +y; prone: -y; on
+    the left side: +x), the level ``level_y`` mm along it."""
     sp, D = GEOMETRIES[geometry]
     sp = np.asarray(sp, float)
     lps_axis = np.argmax(np.abs(D), axis=0)                 # LPS axis of each of i, j, k
@@ -52,6 +52,9 @@ def make_ct(geometry="identity", contents="water", seed=0, wall_mm=5.0, level_y=
     fluid = np.zeros(len(P), bool)
     if contents in ("water", "leak"):
         hu[below] = water_hu
+        fluid = below
+    elif contents == "contrast":                              # positive oral contrast under the level
+        hu[below] = 350.0
         fluid = below
     if contents == "leak":                                    # a water-filled channel to the posterior side
         ch = (np.hypot(x, z) < 9.0) & (y > level_y)
@@ -294,3 +297,21 @@ def test_water_on_another_side_than_the_back_joins_the_lumen(side):
     assert info_s["fluid_dependent_side"] == "posterior"
     assert any(m.startswith(f"retained fluid below an air-fluid level at LPS y = {info_s['fluid_level_lps_y']:.1f} mm "
                             f"(RAS A = {-info_s['fluid_level_lps_y']:.1f} mm), ") for m in info_s["warnings"])
+
+
+@pytest.mark.parametrize("geometry", ["identity", "y_on_k"])
+def test_a_dense_pool_under_a_level_is_not_taken_for_water_but_said(geometry):
+    """Positive oral contrast (350 HU) under a flat level is neither water nor wall: it stays out of the lumen, and
+    the warning says that its surface is drawn as mucosa and what to do (a label, whose contents are cleared)."""
+    ct, _, _ = make_ct(geometry, "contrast")
+    lumen, info = air_region(ct, CARDIA, PYLORUS)
+    air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    assert np.array_equal(lumen, air) and info["fluid_voxels"] == 0 and info["fluid_dependent_side"] is None
+    said = [m for m in info["warnings"] if "dense contents" in m]
+    assert len(said) == 1 and "on the posterior wall" in said[0] and "--mask" in said[0]
+    assert abs(float(said[0].split("LPS y = ")[1].split(" mm")[0]) - LEVEL_Y) <= 1.5
+    assert 250.0 < info["fluid_dense_hu"] < 450.0
+    # water or a flat boundary on tissue say nothing of the kind
+    for contents in ("water", "tissue"):
+        warned = air_region(make_ct(geometry, contents)[0], CARDIA, PYLORUS)[1]["warnings"]
+        assert not any("dense contents" in m for m in warned)
