@@ -161,6 +161,7 @@ def oblique_summary(rows: list[dict], aligned_group: str, group: str = GROUP) ->
                 row["fewer_markers"] = sorted(_volume(a) for a, b in both
                                               if "markers" in a["quality"] and "markers" in b["quality"]
                                               and a["quality"]["markers"]["seen"] < b["quality"]["markers"]["seen"])
+            if label != "as drawn":
                 row["errors"] = sorted({str(r.get("error", "")).split(";")[0][:90] for r in rs.values()
                                         if not r.get("ok")})
             out.append(row)

@@ -80,6 +80,8 @@ def test_the_summary_counts_volumes_that_lose_on_the_turned_grid():
     assert s["oblique"]["visible_lower"] == ["stomach-1"] and s["oblique"]["fewer_markers"] == ["stomach-2"]
     assert s["oblique"]["errors"] == ["AnatomyError: nothing"]
     assert "Why runs failed" in "\n".join(oblique_markdown(rows, "stomachs-held-out"))
+    alone = oblique_summary([r for r in rows if r["group"] == GROUP], "stomachs-held-out")   # the part run alone
+    assert [x["grid"] for x in alone] == ["oblique"] and alone[0]["errors"] == ["AnatomyError: nothing"]
 
 
 def test_the_part_runs_the_held_out_seeds_with_every_method():
