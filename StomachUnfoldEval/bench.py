@@ -20,7 +20,8 @@ from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
 from .memory import memory_markdown, memory_plot, memory_runs
-from .oblique import PRONE_GROUP, front_to_back, oblique_cases, oblique_markdown, prone_cases, turned_grid
+from .oblique import (PRONE_GROUP, ROLLED_GROUP, front_to_back, oblique_cases, oblique_markdown, prone_cases, rolled,
+                      rolled_cases, turned_grid)
 from .raster_phase import phase_cases, phase_markdown
 from .regional import area_scale_along, area_scale_summary
 
@@ -158,6 +159,8 @@ def _load(source: dict):
             ct = turned_grid(ct, source["turn"]["degrees"], source["turn"]["axis"])
         if source.get("prone"):  # mirrored front to back (part ``prone``): the water on the anterior wall
             ct, truth = front_to_back(ct, truth)
+        if source.get("roll_deg"):  # a patient rolled about the S axis (part ``rolled``): the water's level tilted
+            ct, truth = rolled(ct, truth, source["roll_deg"])
         markers = {m["id"]: m["lps"] for m in truth["markers"]}
         if source.get("auto_points"):  # zero clicks: the points found as `unfold --auto-points` finds them
             from .auto_points import found_versus_truth
@@ -407,6 +410,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += oblique_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "prone" in parts:
         cases += prone_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
+    if "rolled" in parts:
+        cases += rolled_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "phase" in parts:
         cases += phase_cases(quick, data_dir, _real_cts(data_dir), _phantom_cache(None), Case)
     if "surfacebound" in parts:
@@ -1190,6 +1195,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     L += click_error_markdown(rows, TUNE_SEEDS, HELD_OUT_SEEDS)
     L += oblique_markdown(rows, "stomachs-held-out")
     L += oblique_markdown(rows, "stomachs-held-out", PRONE_GROUP)
+    L += oblique_markdown(rows, "stomachs-held-out", ROLLED_GROUP)
     L += phase_markdown(rows)
     L += surface_bound_markdown(rows)
     L += memory_markdown(rows)

@@ -1,5 +1,5 @@
-"""The ``oblique`` and ``prone`` parts of ``stomach-unfold bench``: each method on random stomachs resampled onto
-oblique voxel grids, and on the same stomachs as a prone patient's scans.
+"""The ``oblique``, ``prone`` and ``rolled`` parts of ``stomach-unfold bench``: each method on random stomachs
+resampled onto oblique voxel grids, as a prone patient's scans, and as a patient's rolled about the S axis.
 
 The family draws its volumes with axis-aligned, permuted or flipped direction matrices only. A CT reformatted along
 an oblique plane, a volume cropped with a turned region of interest in Slicer, or a scan with gantry tilt resampled
@@ -14,6 +14,10 @@ The family draws supine patients: the water lies on the posterior wall (LPS +y).
 held-out stomach front to back (:func:`front_to_back`: the same voxels with LPS y negated, the truth mirrored with
 them), so its water lies on the anterior wall, as a prone patient's does, and the stomach keeps its left and right
 (its greater curvature to the patient's left, where the incision's fallback looks); only its front and back swap.
+
+A patient is rarely lying square in the scanner. The ``rolled`` part turns each held-out stomach's LPS about the S
+axis by an angle drawn per seed (ROLL_DEGREES, either way; :func:`rolled`): the same voxels, the anatomy turned in the
+patient's frame and gravity not, so the water's level is tilted that much from LPS y = const.
 """
 from __future__ import annotations
 
@@ -30,13 +34,17 @@ OBLIQUE_METHODS = ("isometric", "cylindrical", "lscm")
 #: The rows' group in results.json (part ``oblique``; part ``prone``: PRONE_GROUP).
 GROUP = "oblique"
 PRONE_GROUP = "prone"
+ROLLED_GROUP = "rolled"
+#: How far each volume is rolled about the S axis (degrees, drawn uniformly between the two per seed, either way).
+ROLL_DEGREES = (5.0, 20.0)
 #: LPS mirrored front to back (y negated): a supine scene whose water then lies anteriorly, as a prone patient's.
 FRONT_TO_BACK = np.diag([1.0, -1.0, 1.0])
 #: A volume counts as losing on its turned grid when its visible mucosa falls by more than this (fraction).
 VISIBLE_DROP = 0.005
 
-__all__ = ["turned_grid", "grid_turn", "front_to_back", "oblique_cases", "prone_cases", "oblique_summary",
-           "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS", "GROUP", "PRONE_GROUP"]
+__all__ = ["turned_grid", "grid_turn", "front_to_back", "rolled", "roll_of", "oblique_cases", "prone_cases",
+           "rolled_cases", "oblique_summary", "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS", "ROLL_DEGREES",
+           "GROUP", "PRONE_GROUP", "ROLLED_GROUP"]
 
 
 def _rotation(axis, degrees: float) -> np.ndarray:
@@ -80,18 +88,47 @@ def turned_grid(ct: Volume, degrees: float, axis=(1.0, 2.0, 3.0), background_hu:
     return vol.with_array(np.rint(vol.array).astype(np.int16))
 
 
-def _mirrored_truth(x, key: str = ""):
+def _mirrored_truth(x, key: str = "", M: np.ndarray = FRONT_TO_BACK):
     """A truth record (dicts, lists) with every LPS or RAS point or vector (a key ending in lps or ras: the last axis
-    of length 3) mirrored by FRONT_TO_BACK, and ``fluid_level_lps_y`` (mm) negated."""
+    of length 3) taken through M (a rotation or mirror about the S axis, which maps RAS as it maps LPS), and
+    ``fluid_level_lps_y`` (mm) negated for the front-to-back mirror, None otherwise (the level no longer lies at one
+    LPS y)."""
     if isinstance(x, dict):
-        return {k: (-v if k == "fluid_level_lps_y" and v is not None else _mirrored_truth(v, k)) for k, v in x.items()}
+        mirror = bool(np.allclose(M, FRONT_TO_BACK))
+        return {k: (((-v if mirror else None) if v is not None else None) if k == "fluid_level_lps_y"
+                    else _mirrored_truth(v, k, M)) for k, v in x.items()}
     if key.lower().endswith(("lps", "ras")):
         a = np.asarray(x, float)
         if a.ndim >= 1 and a.shape[-1] == 3:
-            return (a @ FRONT_TO_BACK.T).tolist()
+            return (a @ M.T).tolist()
     if isinstance(x, list):
-        return [_mirrored_truth(v, key) for v in x]
+        return [_mirrored_truth(v, key, M) for v in x]
     return x
+
+
+def roll_of(seed: int) -> float:
+    """The roll of seed's patient about the S axis (degrees, signed, its size within ROLL_DEGREES)."""
+    rng = np.random.default_rng(9_000_011 + int(seed))
+    return float(rng.choice([-1.0, 1.0]) * rng.uniform(*ROLL_DEGREES))
+
+
+def rolled(ct: Volume, truth: dict, degrees: float) -> tuple[Volume, dict]:
+    """The CT (HU) and its truth as the scan of a patient rolled ``degrees`` about the S axis: the same voxels with the
+    LPS frame turned that much about z (the anatomy turns in the patient's frame, gravity stays the scanner's, so
+    the water's level tilts from LPS y = const); every LPS point (mm) of the truth turned too."""
+    t = np.radians(float(degrees))
+    R = np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
+    vol = Volume(ct.array, ct.spacing, R @ np.asarray(ct.origin, float), R @ np.asarray(ct.direction, float))
+    return vol, _mirrored_truth(copy.deepcopy(truth), "", R)
+
+
+def rolled_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
+    """The ``rolled`` part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed, each patient rolled by
+    :func:`roll_of`."""
+    seeds = list(seeds[:2]) if quick else list(seeds)
+    return [case(f"stomach-{seed}/{m}-rolled", {"random": int(seed), "size": "small", "_cache": cache,
+                                                "roll_deg": roll_of(seed)}, {}, method=m, group=ROLLED_GROUP)
+            for m in OBLIQUE_METHODS for seed in seeds]
 
 
 def front_to_back(ct: Volume, truth: dict) -> tuple[Volume, dict]:
@@ -130,7 +167,7 @@ def oblique_summary(rows: list[dict], aligned_group: str, group: str = GROUP) ->
     time median (s), and on the oblique grid the volumes whose visible mucosa falls by over VISIBLE_DROP or that see
     fewer markers than as drawn."""
     turned = [r for r in rows if r.get("group") == group]
-    label_turned = "prone" if group == PRONE_GROUP else "oblique"
+    label_turned = {PRONE_GROUP: "prone", ROLLED_GROUP: "rolled"}.get(group, "oblique")
     out = []
     for m in OBLIQUE_METHODS:
         mine = {_volume(r): r for r in turned if r["method"] == m}
@@ -174,7 +211,16 @@ def oblique_markdown(rows: list[dict], aligned_group: str, group: str = GROUP) -
     if not summ:
         return []
     lo, hi = OBLIQUE_DEGREES
-    if group == PRONE_GROUP:
+    if group == ROLLED_GROUP:
+        rlo, rhi = ROLL_DEGREES
+        head = [f"## Rolled: the held-out random stomachs as patients rolled {rlo:g}-{rhi:g} degrees about the S "
+                "axis\n",
+                "Each volume's LPS frame turned about z by an angle drawn per seed (either way; points and markers "
+                "turned with it): the anatomy turns in the patient's frame and the water's level tilts that much; "
+                f"*as drawn*: the `stomachs` part's rows on the same volumes. *lower*: volumes whose visible mucosa "
+                f"falls by over {100 * VISIBLE_DROP:g} point rolled; *fewer markers*: volumes that see fewer markers "
+                "than as drawn.\n"]
+    elif group == PRONE_GROUP:
         head = ["## Prone: the held-out random stomachs mirrored front to back, their water on the anterior wall\n",
                 "Each volume's voxels with LPS y negated (points and markers mirrored with them), as a prone "
                 "patient's scan; *as drawn*: the `stomachs` part's rows on the same volumes. *lower*: volumes whose "

@@ -773,9 +773,11 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     A supine stomach's water lies on the posterior (LPS +y) wall under a flat level; a prone one's on the anterior
     wall, and a patient lying on a side has it on that side: the sides of DEPENDENT_SIDES are tried in turn (the
     CT's frame turned about the S axis so that the side lies along +y; below, "posterior" is that side) and the first
-    with a level that has water under it is taken (another side's whose water would leak is passed over). The
-    level is the air region's flat posterior boundary (:func:`_level_patch`; none: no fluid, nothing changes). From each of its
-    voxels a ray is cast posteriorly along the grid axis closest to +y through the CT lightly smoothed
+    with a level that has water under it is taken (another side's whose water would leak is passed over); if none
+    has, a flat part of the air's boundary tilted up to ROLL_MAX_DEG from a side (a patient rolled in the scanner,
+    :func:`_tilted_levels`) is tried the same way, its normal as the side. The level is the air region's flat
+    posterior boundary (:func:`_level_patch`; none: no fluid, nothing changes). From each of its voxels a ray is cast
+    posteriorly along the grid axis closest to +y through the CT lightly smoothed
     (Gaussian, one voxel or 1.5 mm if less): it crosses the partial-volume voxels of the first 3 mm (air and
     water) and goes on while the HU stays in the water range [``FLUID_MIN_HU``, ``max_hu``] (HU; the wall is
     about 40 HU, fat about -90 HU), stopping at the first voxel above ``max_hu``, at two in a row below the
@@ -797,8 +799,9 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
 
     Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
     of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level or a level on the left or
-    right), ``fluid_dependent_side`` (a key of DEPENDENT_SIDES or None), ``fluid_level_text`` (the level's LPS and
-    RAS coordinate, for messages) and ``warnings`` (list of str).
+    right or tilted), ``fluid_dependent_side`` (a key of DEPENDENT_SIDES or None), ``fluid_gravity_lps`` (the unit
+    normal of the level it was found under, LPS), ``fluid_level_text`` (the level's place, for messages),
+    ``fluid_dense_hu`` (where a dense pool was said) and ``warnings`` (list of str).
     """
     air = np.asarray(air, bool)
     info = {"fluid_voxels": 0, "fluid_ml": 0.0, "fluid_level_lps_y": None, "fluid_dependent_side": None,
@@ -807,11 +810,10 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     if not air.any() or max_hu <= FLUID_MIN_HU:
         return none, info
     dense = None
-    for side, gravity in DEPENDENT_SIDES.items():
-        # the CT's frame turned about the S axis so that this side lies along +y (the same voxels, LPS relabelled)
-        Q = _turn_to_posterior(gravity)
-        ct_g = ct if side == "posterior" else Volume(ct.array, ct.spacing, Q @ np.asarray(ct.origin, float),
-                                                     Q @ np.asarray(ct.direction, float))
+    for side, gravity, Q in _gravity_frames(ct, air, min_level_mm2):
+        # the CT's frame turned so that gravity lies along +y (the same voxels, LPS relabelled)
+        ct_g = ct if Q is None else Volume(ct.array, ct.spacing, Q @ np.asarray(ct.origin, float),
+                                           Q @ np.asarray(ct.direction, float))
         found = (_fluid_upright if _tilt_deg(ct_g) > UPRIGHT_TILT_DEG else _fluid_on_grid)(
             ct_g, air, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
         if found is None:
@@ -821,17 +823,19 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
             continue
         fluid, level = found
         n = int(np.count_nonzero(fluid))
-        ras = _level_text(gravity, level)
+        ras = _level_text(gravity, level, side)
         n_air = int(np.count_nonzero(air))
         problem = ""
         if n > max_air_ratio * n_air:
             problem = f"is {n / max(n_air, 1):.1f} times the air volume (over {max_air_ratio:g})"
         elif _touches_faces(fluid, (0, 1, 2)):
             problem = "reaches the side of the volume"
-        if problem and side != "posterior":
+        if problem and Q is not None:
             continue                                   # another side's "water" leaking: not a level at all
-        at = level if gravity[0] + gravity[1] > 0 else -level     # the level's LPS coordinate along its axis (mm)
-        info.update(fluid_level_lps_y=at if gravity[1] else None, fluid_dependent_side=side, fluid_level_text=ras)
+        exact = bool(np.max(np.abs(gravity)) > 1.0 - 1e-9)
+        at = level if np.sum(gravity) > 0 else -level              # the level's LPS coordinate along its axis (mm)
+        info.update(fluid_level_lps_y=at if exact and gravity[1] else None, fluid_dependent_side=side,
+                    fluid_level_text=ras, fluid_gravity_lps=[float(x) for x in gravity])
         if problem:
             info["warnings"].append(f"a flat air-fluid level was found at {ras} but the fluid-like voxels below it "
                                     f"{problem}: they leak into the body and were not added to the lumen (check "
@@ -843,19 +847,113 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     if dense is not None:
         side, gravity, pool = dense
         info["fluid_dense_hu"] = pool.hu
-        info["warnings"].append(f"a flat level at {_level_text(gravity, pool.level_y)} on the {side} wall has dense "
-                                f"contents under it (median {pool.hu:.0f} HU: oral contrast?); they are not water, so "
-                                "their surface is drawn as mucosa and the wall under them is hidden: pass a stomach "
-                                "label with --mask, whose contents are shown as air")
+        info["warnings"].append(f"a flat level at {_level_text(gravity, pool.level_y, side)} on the {side} wall has "
+                                f"dense contents under it (median {pool.hu:.0f} HU: oral contrast?); they are not "
+                                "water, so their surface is drawn as mucosa and the wall under them is hidden: pass a "
+                                "stomach label with --mask, whose contents are shown as air")
     return none, info
 
 
-def _level_text(gravity, level: float) -> str:
-    """A level's place for messages: its LPS and RAS coordinate (mm) along the axis of ``gravity`` (+-x or +-y),
-    from ``level``, its coordinate along ``gravity`` itself."""
-    axis = "y" if gravity[1] else "x"
-    at = level if gravity[0] + gravity[1] > 0 else -level
+def _level_text(gravity, level: float, side: str = "posterior") -> str:
+    """A level's place for messages: its LPS and RAS coordinate (mm) along the axis of ``gravity`` (+-x or +-y), from
+    ``level``, its coordinate along ``gravity`` itself; for a gravity off the axes (a patient rolled), the level's
+    offset along it and its tilt from the ``side``'s wall."""
+    g = np.asarray(gravity, float)
+    if np.max(np.abs(g)) < 1.0 - 1e-9:
+        tilt = float(np.degrees(np.arccos(np.clip(g @ np.asarray(DEPENDENT_SIDES[side]), -1.0, 1.0))))
+        return (f"{level:.1f} mm along LPS ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f}), tilted {tilt:.0f} degrees from "
+                "the horizontal (a patient rolled in the scanner)")
+    axis = "y" if g[1] else "x"
+    at = level if g[0] + g[1] > 0 else -level
     return f"LPS {axis} = {at:.1f} mm (RAS {'A' if axis == 'y' else 'R'} = {-at:.1f} mm)"
+
+
+def _gravity_frames(ct: Volume, air: np.ndarray, min_level_mm2: float):
+    """(side, gravity (unit LPS), rotation taking gravity onto +y, or None for +y itself) to look for the water in:
+    each of DEPENDENT_SIDES; then, if none of them holds it, the flat parts of the air's boundary whose normal lies
+    within ROLL_MAX_DEG of a side's (:func:`_tilted_levels`: a patient rolled in the scanner)."""
+    for side, gravity in DEPENDENT_SIDES.items():
+        yield side, np.asarray(gravity, float), (None if side == "posterior" else _turn_to_posterior(gravity))
+    for side, g in _tilted_levels(ct, air, min_level_mm2):
+        yield side, g, _onto_y(g)
+
+
+#: A flat air boundary whose normal lies within this (degrees) of a side's direction is tried as a tilted level.
+ROLL_MAX_DEG = 35.0
+
+
+def _onto_y(g: np.ndarray) -> np.ndarray:
+    """The least rotation (3x3) that takes the unit vector g (LPS) onto +y."""
+    g = np.asarray(g, float) / np.linalg.norm(g)
+    axis = np.cross(g, [0.0, 1.0, 0.0])
+    sin, cos = float(np.linalg.norm(axis)), float(g[1])
+    if sin < 1e-12:
+        return np.eye(3) if cos > 0 else np.diag([-1.0, -1.0, 1.0])
+    k = axis / sin
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + sin * K + (1.0 - cos) * K @ K
+
+
+def _tilted_levels(ct: Volume, air: np.ndarray, min_level_mm2: float) -> list:
+    """(side, unit normal LPS) of each flat part of the air's boundary tilted 1 to ROLL_MAX_DEG degrees from a side's
+    direction: the boundary points whose outward normal (the smoothed mask's gradient, on every second voxel of a large
+    box) lies within ROLL_MAX_DEG of the side, the plane fitted (least squares) to those within 1.5 voxels of the
+    densest slab across it, four times, kept where the densest two-voxel slab of that plane holds at least
+    ``min_level_mm2`` (mm^2) of boundary."""
+    lo, hi = bounding_box(air, (2, 2, 2))
+    box = air[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+    step = 2 if box.size > 2_000_000 else 1
+    box = box[::step, ::step, ::step]
+    sp = np.asarray(ct.spacing, float) * step
+    sm = ndimage.gaussian_filter(box.astype(np.float32), 1.0)
+    shell = (sm > 0.3) & (sm < 0.7)
+    if not shell.any():
+        return []
+    gk, gj, gi = (g[shell] for g in np.gradient(sm))
+    D = np.asarray(ct.direction, float)
+    grad = np.stack([gi / sp[0], gj / sp[1], gk / sp[2]], 1) @ D.T        # LPS, per mm
+    norm = np.linalg.norm(grad, axis=1)
+    ok = norm > 1e-6
+    n = -grad[ok] / norm[ok, None]                                         # outward: from the air into the wall
+    kk, jj, ii = np.nonzero(shell)
+    p = ct.index_to_lps(np.stack([ii[ok] * step + lo[0], jj[ok] * step + lo[1], kk[ok] * step + lo[2]], 1)
+                        .astype(float))
+    face = float(np.prod(sp)) / float(sp.min())                            # mm^2 of boundary per shell voxel, about
+    out = []
+    w = float(sp.min())
+    for side, g0 in DEPENDENT_SIDES.items():
+        g0 = np.asarray(g0, float)
+        sel = n @ g0 > np.cos(np.radians(ROLL_MAX_DEG))
+        if sel.sum() * face < min_level_mm2:
+            continue
+        # the plane through the most of those points: the densest slab along g0, then least squares (its normal the
+        # covariance's least axis), again on the points within a voxel of that plane (a staircase's own normals
+        # lean toward the grid's axes; its points do not)
+        m, q = g0, p[sel]
+        for _ in range(4):
+            d = q @ m
+            hist = np.bincount(np.floor((d - d.min()) / w).astype(np.int64))
+            b = int(np.argmax(hist[:-1] + hist[1:])) if len(hist) > 1 else 0
+            mid = d.min() + (b + 1.0) * w
+            on = np.abs(d - mid) <= 1.5 * w
+            if on.sum() < 10:
+                break
+            c = q[on] - q[on].mean(0)
+            evals, evecs = np.linalg.eigh(c.T @ c)
+            m_new = evecs[:, 0] * (1.0 if evecs[:, 0] @ g0 >= 0 else -1.0)
+            if np.degrees(np.arccos(np.clip(m_new @ g0, -1.0, 1.0))) > ROLL_MAX_DEG:
+                break
+            m = m_new
+        tilt = float(np.degrees(np.arccos(np.clip(m @ g0, -1.0, 1.0))))
+        if tilt < UPRIGHT_TILT_DEG or tilt > ROLL_MAX_DEG:
+            continue
+        d = q @ m
+        hist = np.bincount(np.floor((d - d.min()) / w).astype(np.int64))
+        if len(hist) > 1:
+            hist = hist[:-1] + hist[1:]
+        if hist.max() * face >= min_level_mm2:
+            out.append((side, m))
+    return out
 
 
 #: The sides of the stomach its water may lie on, in the order they are tried, each with its direction in LPS: the

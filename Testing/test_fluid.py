@@ -315,3 +315,21 @@ def test_a_dense_pool_under_a_level_is_not_taken_for_water_but_said(geometry):
     for contents in ("water", "tissue"):
         warned = air_region(make_ct(geometry, contents)[0], CARDIA, PYLORUS)[1]["warnings"]
         assert not any("dense contents" in m for m in warned)
+
+
+@pytest.mark.parametrize("degrees", [-12.0, 8.0])
+def test_water_under_a_tilted_level_of_a_rolled_patient_joins_the_lumen(degrees):
+    """A patient rolled about the S axis: gravity, and the level, tilt from LPS y = const. The level is found as a flat
+    part of the air's boundary, its tilt said, and the pool joins the lumen (it had been left out without a word)."""
+    t = np.radians(degrees)
+    g = np.array([np.sin(t), np.cos(t), 0.0])                   # +y turned about z: the water's side, tilted
+    ct, fluid_true, lumen_true = make_ct("identity", dependent=g)
+    lumen, info = air_region(ct, CARDIA, PYLORUS)
+    air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    assert info["fluid_dependent_side"] == "posterior" and info["fluid_voxels"] > 0
+    assert np.degrees(np.arccos(np.clip(np.dot(info["fluid_gravity_lps"], g), -1.0, 1.0))) < 3.0
+    said_tilt = float(info["fluid_level_text"].split("tilted ")[1].split(" degrees")[0])
+    assert info["fluid_level_lps_y"] is None and abs(said_tilt - abs(degrees)) <= 2.0
+    assert dice(lumen & ~air, fluid_true) > 0.9 and dice(lumen, lumen_true) > 0.95
+    said = [m for m in info["warnings"] if "retained fluid below an air-fluid level" in m]
+    assert len(said) == 1 and "a patient rolled in the scanner" in said[0]

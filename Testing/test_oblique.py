@@ -151,3 +151,38 @@ def test_a_prone_stomachs_water_is_found_on_its_anterior_wall_and_the_markers_un
     b = prone["quality"]["markers"]["by_region"]["under_fluid"]
     assert a[1] == b[1] >= 2 and b[0] >= a[0] - 1 and b[0] >= b[1] - 1
     assert prone["quality"]["grade"] == "excellent"
+
+
+def test_a_rolled_patients_water_is_found_under_its_tilted_level(tmp_path):
+    """Tiny random stomach 2 (57 mL of water) as a patient rolled 10 degrees about the S axis: the level tilts 10
+    degrees from LPS y = const; the water is found under it, said so, and the markers under it seen as unrolled (a
+    level off LPS y had been missed without a word)."""
+    from StomachUnfoldEval.bench import Case, run_case
+    from StomachUnfoldEval.oblique import ROLLED_GROUP
+
+    src = {"random": 2, "size": "tiny", "_cache": str(tmp_path)}
+    flat = run_case(Case("stomach-2/isometric", src, {}, method="isometric", group="stomachs-held-out"))
+    roll = run_case(Case("stomach-2/isometric-rolled", {**src, "roll_deg": 10.0}, {}, method="isometric",
+                         group=ROLLED_GROUP))
+    assert flat["ok"] and roll["ok"], (flat.get("error"), roll.get("error"))
+    said = [w for w in roll["warnings"] if "retained fluid below an air-fluid level" in w]
+    assert len(said) == 1 and "tilted 10 degrees" in said[0]
+    a = flat["quality"]["markers"]["by_region"]["under_fluid"]
+    b = roll["quality"]["markers"]["by_region"]["under_fluid"]
+    assert a[1] == b[1] >= 2 and b[0] >= a[0] - 1 and roll["quality"]["grade"] == "excellent"
+
+
+def test_rolled_turns_the_frame_about_s_and_every_lps_point_with_it():
+    from StomachUnfoldEval.oblique import roll_of, rolled
+
+    ct, _ = _ball_ct(np.eye(3))
+    truth = {"cardia_lps": [10.0, 0.0, 3.0], "fluid_level_lps_y": 20.0,
+             "markers": [{"id": "M01", "lps": [0.0, 10.0, 0.0]}]}
+    vol, t = rolled(ct, truth, 90.0)
+    assert vol.array is ct.array and np.allclose(t["cardia_lps"], [0.0, 10.0, 3.0])
+    assert np.allclose(t["markers"][0]["lps"], [-10.0, 0.0, 0.0]) and t["fluid_level_lps_y"] is None
+    ijk = np.array([[3.0, 7.0, 2.0]])
+    p0, p1 = ct.index_to_lps(ijk)[0], vol.index_to_lps(ijk)[0]
+    assert np.allclose(p1, [-p0[1], p0[0], p0[2]])
+    r = [roll_of(s) for s in range(1000, 1030)]
+    assert all(5.0 <= abs(x) <= 20.0 for x in r) and min(r) < 0 < max(r)
