@@ -880,8 +880,6 @@ def _gravity_frames(ct: Volume, air: np.ndarray, min_level_mm2: float):
 
 #: A flat air boundary whose normal lies within this (degrees) of a side's direction is tried as a tilted level.
 ROLL_MAX_DEG = 35.0
-#: The plane fits of :func:`_tilted_levels` start from each side turned about S by each of these (degrees).
-ROLL_STARTS_DEG = (0.0, -10.0, 10.0, -20.0, 20.0, -30.0, 30.0)
 
 
 def _onto_y(g: np.ndarray) -> np.ndarray:
@@ -898,11 +896,10 @@ def _onto_y(g: np.ndarray) -> np.ndarray:
 
 def _tilted_levels(ct: Volume, air: np.ndarray, min_level_mm2: float) -> list:
     """(side, unit normal LPS) of each flat part of the air's boundary tilted 1 to ROLL_MAX_DEG degrees from a side's
-    direction, the largest first: from each side turned about S by each of ROLL_STARTS_DEG, the boundary points whose
-    outward normal (the smoothed mask's gradient, on every second voxel of a large box) lies within ROLL_MAX_DEG of
-    it, the plane fitted (least squares) to those within 1.5 voxels of the densest slab across it, four times, kept
-    where the densest two-voxel slab of that plane holds at least ``min_level_mm2`` (mm^2) of boundary; planes within
-    3 degrees of a larger one are dropped."""
+    direction: the boundary points whose outward normal (the smoothed mask's gradient, on every second voxel of a large
+    box) lies within ROLL_MAX_DEG of the side, the plane fitted (least squares) to those within 1.5 voxels of the
+    densest slab across it, four times, kept where the densest two-voxel slab of that plane holds at least
+    ``min_level_mm2`` (mm^2) of boundary."""
     lo, hi = bounding_box(air, (2, 2, 2))
     box = air[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
     step = 2 if box.size > 2_000_000 else 1
@@ -922,41 +919,39 @@ def _tilted_levels(ct: Volume, air: np.ndarray, min_level_mm2: float) -> list:
     p = ct.index_to_lps(np.stack([ii[ok] * step + lo[0], jj[ok] * step + lo[1], kk[ok] * step + lo[2]], 1)
                         .astype(float))
     face = float(np.prod(sp)) / float(sp.min())                            # mm^2 of boundary per shell voxel, about
-    found = []
+    out = []
     w = float(sp.min())
     for side, g0 in DEPENDENT_SIDES.items():
         g0 = np.asarray(g0, float)
-        for roll in ROLL_STARTS_DEG:           # the fit starts from the side turned about S (a roll) each of these
-            t = np.radians(roll)
-            m = np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]]) @ g0
-            sel = n @ m > np.cos(np.radians(ROLL_MAX_DEG))
-            if sel.sum() * face < min_level_mm2:
-                continue
-            # the plane through the most of those points: the densest slab along m, then least squares (its normal
-            # the covariance's least axis), again on the points within 1.5 voxels of that plane (a staircase's own
-            # normals lean toward the grid's axes; its points do not)
-            q = p[sel]
-            for _ in range(4):
-                d = q @ m
-                hist = np.bincount(np.floor((d - d.min()) / w).astype(np.int64))
-                b = int(np.argmax(hist[:-1] + hist[1:])) if len(hist) > 1 else 0
-                on = np.abs(d - (d.min() + (b + 1.0) * w)) <= 1.5 * w
-                if on.sum() < 10:
-                    break
-                c = q[on] - q[on].mean(0)
-                m_new = np.linalg.eigh(c.T @ c)[1][:, 0]
-                m = m_new * (1.0 if m_new @ m >= 0 else -1.0)
-            tilt = float(np.degrees(np.arccos(np.clip(m @ g0, -1.0, 1.0))))
-            if tilt < UPRIGHT_TILT_DEG or tilt > ROLL_MAX_DEG:
-                continue
+        sel = n @ g0 > np.cos(np.radians(ROLL_MAX_DEG))
+        if sel.sum() * face < min_level_mm2:
+            continue
+        # the plane through the most of those points: the densest slab along g0, then least squares (its normal the
+        # covariance's least axis), again on the points within a voxel of that plane (a staircase's own normals
+        # lean toward the grid's axes; its points do not)
+        m, q = g0, p[sel]
+        for _ in range(4):
             d = q @ m
             hist = np.bincount(np.floor((d - d.min()) / w).astype(np.int64))
-            area = float((hist[:-1] + hist[1:]).max() if len(hist) > 1 else hist.max()) * face
-            if area >= min_level_mm2:
-                found.append((area, side, m))
-    out = []
-    for area, side, m in sorted(found, key=lambda x: -x[0]):   # the largest first, each plane once
-        if all(np.degrees(np.arccos(np.clip(m @ m2, -1.0, 1.0))) > 3.0 for _, m2 in out):
+            b = int(np.argmax(hist[:-1] + hist[1:])) if len(hist) > 1 else 0
+            mid = d.min() + (b + 1.0) * w
+            on = np.abs(d - mid) <= 1.5 * w
+            if on.sum() < 10:
+                break
+            c = q[on] - q[on].mean(0)
+            evals, evecs = np.linalg.eigh(c.T @ c)
+            m_new = evecs[:, 0] * (1.0 if evecs[:, 0] @ g0 >= 0 else -1.0)
+            if np.degrees(np.arccos(np.clip(m_new @ g0, -1.0, 1.0))) > ROLL_MAX_DEG:
+                break
+            m = m_new
+        tilt = float(np.degrees(np.arccos(np.clip(m @ g0, -1.0, 1.0))))
+        if tilt < UPRIGHT_TILT_DEG or tilt > ROLL_MAX_DEG:
+            continue
+        d = q @ m
+        hist = np.bincount(np.floor((d - d.min()) / w).astype(np.int64))
+        if len(hist) > 1:
+            hist = hist[:-1] + hist[1:]
+        if hist.max() * face >= min_level_mm2:
             out.append((side, m))
     return out
 
