@@ -693,14 +693,7 @@ def _upright_direction(direction: np.ndarray) -> np.ndarray:
     """The direction matrix turned by the least rotation that lays its axis closest to LPS +y exactly along +-y."""
     D = np.asarray(direction, float)
     a = int(np.argmax(np.abs(D[1, :])))
-    u = np.sign(D[1, a]) * D[:, a]
-    axis = np.cross(u, [0.0, 1.0, 0.0])
-    sin, cos = float(np.linalg.norm(axis)), float(u[1])
-    if sin < 1e-12:
-        return D.copy()
-    k = axis / sin
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return (np.eye(3) + sin * K + (1.0 - cos) * K @ K) @ D
+    return _onto_y(np.sign(D[1, a]) * D[:, a]) @ D
 
 
 def _resampled(arr: np.ndarray, src: Volume, ref: Volume, linear: bool, background: float) -> np.ndarray:
@@ -774,8 +767,9 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     wall, and a patient lying on a side has it on that side: the sides of DEPENDENT_SIDES are tried in turn (the
     CT's frame turned about the S axis so that the side lies along +y; below, "posterior" is that side) and the first
     with a level that has water under it is taken (another side's whose water would leak is passed over); if none
-    has, a flat part of the air's boundary tilted up to ROLL_MAX_DEG from a side (a patient rolled in the scanner,
-    :func:`_tilted_levels`) is tried the same way, its normal as the side. The level is the air region's flat
+    has, the largest flat parts of the air's boundary tilted up to ROLL_MAX_DEG from a side with water beyond them (a
+    patient rolled in the scanner, :func:`_tilted_levels`; at most MAX_TILTED_LEVELS) are tried the same way, each
+    plane's normal as the side. The level is the air region's flat
     posterior boundary (:func:`_level_patch`; none: no fluid, nothing changes). From each of its voxels a ray is cast
     posteriorly along the grid axis closest to +y through the CT lightly smoothed
     (Gaussian, one voxel or 1.5 mm if less): it crosses the partial-volume voxels of the first 3 mm (air and
@@ -810,7 +804,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     if not air.any() or max_hu <= FLUID_MIN_HU:
         return none, info
     dense = None
-    for side, gravity, Q in _gravity_frames(ct, air, min_level_mm2):
+    for side, gravity, Q in _gravity_frames(ct, air, min_level_mm2, max_hu):
         # the CT's frame turned so that gravity lies along +y (the same voxels, LPS relabelled)
         ct_g = ct if Q is None else Volume(ct.array, ct.spacing, Q @ np.asarray(ct.origin, float),
                                            Q @ np.asarray(ct.direction, float))
@@ -823,7 +817,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
             continue
         fluid, level = found
         n = int(np.count_nonzero(fluid))
-        ras = _level_text(gravity, level, side)
+        ras, lps_y = _level_place(gravity, level, side)
         n_air = int(np.count_nonzero(air))
         problem = ""
         if n > max_air_ratio * n_air:
@@ -832,9 +826,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
             problem = "reaches the side of the volume"
         if problem and Q is not None:
             continue                                   # another side's "water" leaking: not a level at all
-        exact = bool(np.max(np.abs(gravity)) > 1.0 - 1e-9)
-        at = level if np.sum(gravity) > 0 else -level              # the level's LPS coordinate along its axis (mm)
-        info.update(fluid_level_lps_y=at if exact and gravity[1] else None, fluid_dependent_side=side,
+        info.update(fluid_level_lps_y=lps_y, fluid_dependent_side=side,
                     fluid_level_text=ras, fluid_gravity_lps=[float(x) for x in gravity])
         if problem:
             info["warnings"].append(f"a flat air-fluid level was found at {ras} but the fluid-like voxels below it "
@@ -847,44 +839,56 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     if dense is not None:
         side, gravity, pool = dense
         info["fluid_dense_hu"] = pool.hu
-        info["warnings"].append(f"a flat level at {_level_text(gravity, pool.level_y, side)} on the {side} wall has "
+        info["warnings"].append(f"a flat level at {_level_place(gravity, pool.level_y, side)[0]} on the {side} wall has "
                                 f"dense contents under it (median {pool.hu:.0f} HU: oral contrast?); they are not "
                                 "water, so their surface is drawn as mucosa and the wall under them is hidden: pass a "
                                 "stomach label with --mask, whose contents are shown as air")
     return none, info
 
 
-def _level_text(gravity, level: float, side: str = "posterior") -> str:
-    """A level's place for messages: its LPS and RAS coordinate (mm) along the axis of ``gravity`` (+-x or +-y), from
-    ``level``, its coordinate along ``gravity`` itself; for a gravity off the axes (a patient rolled), the level's
-    offset along it and its tilt from the ``side``'s wall."""
+def _level_place(gravity, level: float, side: str = "posterior") -> tuple[str, float | None]:
+    """A level's place: (text for messages, its LPS y in mm or None), from ``level``, its coordinate (mm) along the unit
+    ``gravity`` (LPS). On a side's axis (+-x or +-y) the text gives its LPS and RAS coordinate along that axis (the
+    LPS y only on +-y); off the axes (a patient rolled) its offset along ``gravity`` and its tilt from the ``side``'s
+    wall, and no LPS y."""
     g = np.asarray(gravity, float)
     if np.max(np.abs(g)) < 1.0 - 1e-9:
         tilt = float(np.degrees(np.arccos(np.clip(g @ np.asarray(DEPENDENT_SIDES[side]), -1.0, 1.0))))
         return (f"{level:.1f} mm along LPS ({g[0]:.2f}, {g[1]:.2f}, {g[2]:.2f}), tilted {tilt:.0f} degrees from "
-                "the horizontal (a patient rolled in the scanner)")
+                "the horizontal (a patient rolled in the scanner)", None)
     axis = "y" if g[1] else "x"
-    at = level if g[0] + g[1] > 0 else -level
-    return f"LPS {axis} = {at:.1f} mm (RAS {'A' if axis == 'y' else 'R'} = {-at:.1f} mm)"
+    at = level if g[0] + g[1] > 0 else -level                    # the level's LPS coordinate along its axis (mm)
+    return f"LPS {axis} = {at:.1f} mm (RAS {'A' if axis == 'y' else 'R'} = {-at:.1f} mm)", (at if g[1] else None)
 
 
-def _gravity_frames(ct: Volume, air: np.ndarray, min_level_mm2: float):
+def _gravity_frames(ct: Volume, air: np.ndarray, min_level_mm2: float, max_hu: float):
     """(side, gravity (unit LPS), rotation taking gravity onto +y, or None for +y itself) to look for the water in:
     each of DEPENDENT_SIDES; then, if none of them holds it, the flat parts of the air's boundary whose normal lies
-    within ROLL_MAX_DEG of a side's (:func:`_tilted_levels`: a patient rolled in the scanner)."""
+    within ROLL_MAX_DEG of a side's and that have water beyond them (:func:`_tilted_levels`: a patient rolled in the
+    scanner)."""
     for side, gravity in DEPENDENT_SIDES.items():
         yield side, np.asarray(gravity, float), (None if side == "posterior" else _turn_to_posterior(gravity))
-    for side, g in _tilted_levels(ct, air, min_level_mm2):
+    for side, g in _tilted_levels(ct, air, min_level_mm2, max_hu):
         yield side, g, _onto_y(g)
 
 
 #: A flat air boundary whose normal lies within this (degrees) of a side's direction is tried as a tilted level.
 ROLL_MAX_DEG = 35.0
+#: The plane fits of :func:`_tilted_levels` start from each side turned about S by each of these (degrees): a fit
+#: started from the side itself settles on the flat part of the wall nearest the side's direction, which for a level
+#: rolled about 20 degrees is another one.
+ROLL_STARTS_DEG = (0.0, -10.0, 10.0, -20.0, 20.0, -30.0, 30.0)
+#: At most this many tilted planes are tried as the level (the largest with water beyond them first): each try runs
+#: the water's rays on a grid turned upright (0.7-2 s on a full-size CT).
+MAX_TILTED_LEVELS = 2
+#: Depths (mm) beyond a tilted plane at which :func:`_water_beyond` samples the CT: past the 3 mm of partial volume
+#: the rays also cross (:func:`fluid_below_level`), to about 9 mm.
+WATER_TEST_DEPTHS_MM = (3.5, 4.5, 5.5, 6.5, 7.5, 8.5)
 
 
 def _onto_y(g: np.ndarray) -> np.ndarray:
-    """The least rotation (3x3) that takes the unit vector g (LPS) onto +y."""
-    g = np.asarray(g, float) / np.linalg.norm(g)
+    """The least rotation (3x3) that takes the unit vector g (LPS) onto +y (Rodrigues' formula)."""
+    g = np.asarray(g, float)
     axis = np.cross(g, [0.0, 1.0, 0.0])
     sin, cos = float(np.linalg.norm(axis)), float(g[1])
     if sin < 1e-12:
@@ -894,12 +898,33 @@ def _onto_y(g: np.ndarray) -> np.ndarray:
     return np.eye(3) + sin * K + (1.0 - cos) * K @ K
 
 
-def _tilted_levels(ct: Volume, air: np.ndarray, min_level_mm2: float) -> list:
-    """(side, unit normal LPS) of each flat part of the air's boundary tilted 1 to ROLL_MAX_DEG degrees from a side's
-    direction: the boundary points whose outward normal (the smoothed mask's gradient, on every second voxel of a large
-    box) lies within ROLL_MAX_DEG of the side, the plane fitted (least squares) to those within 1.5 voxels of the
-    densest slab across it, four times, kept where the densest two-voxel slab of that plane holds at least
-    ``min_level_mm2`` (mm^2) of boundary."""
+def _water_beyond(ct: Volume, pts: np.ndarray, m: np.ndarray, max_hu: float) -> float:
+    """Fraction of the boundary points ``pts`` (LPS mm) with water beyond them along ``m`` (unit, LPS): at least two
+    thirds of the CT's values at WATER_TEST_DEPTHS_MM in the water range [FLUID_MIN_HU, ``max_hu``] (HU; each the mean
+    of five trilinear samples, one voxel apart across ``m``, against the noise). A cheap test before the rays: a wall
+    with fat or an organ behind it crosses the range in a sample or two."""
+    if len(pts) > 4000:
+        pts = pts[np.linspace(0, len(pts) - 1, 4000).astype(np.int64)]
+    e1 = np.cross(m, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)                    # m lies within ROLL_MAX_DEG of a horizontal side: never along z
+    e2 = np.cross(m, e1)
+    w = float(np.min(ct.spacing))
+    at = pts[:, None, :] + np.asarray(WATER_TEST_DEPTHS_MM, float)[None, :, None] * m[None, None, :]
+    hu = sum(ct.sample(at + off) for off in (0.0 * e1, w * e1, -w * e1, w * e2, -w * e2)) / 5.0
+    wet = np.count_nonzero((hu >= FLUID_MIN_HU) & (hu <= max_hu), axis=1)
+    return float(np.mean(3 * wet >= 2 * len(WATER_TEST_DEPTHS_MM)))
+
+
+def _tilted_levels(ct: Volume, air: np.ndarray, min_level_mm2: float, max_hu: float) -> list:
+    """(side, unit normal LPS) of up to MAX_TILTED_LEVELS flat parts of the air's boundary tilted 1 to ROLL_MAX_DEG
+    degrees from a side's direction with water beyond them, the largest first.
+
+    From each side turned about S by each of ROLL_STARTS_DEG, the boundary points whose outward normal (the smoothed
+    mask's gradient, on every second voxel of a large box) lies within ROLL_MAX_DEG of it; the plane fitted (least
+    squares) to those within 1.5 voxels of the densest slab across it, four times; kept where the densest two-voxel
+    slab of that plane holds at least ``min_level_mm2`` (mm^2) of boundary and at least FLUID_MIN_WATER_FRACTION of
+    that slab's points have water beyond them (:func:`_water_beyond`); planes within 3 degrees of a larger one are
+    dropped."""
     lo, hi = bounding_box(air, (2, 2, 2))
     box = air[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
     step = 2 if box.size > 2_000_000 else 1
@@ -919,39 +944,47 @@ def _tilted_levels(ct: Volume, air: np.ndarray, min_level_mm2: float) -> list:
     p = ct.index_to_lps(np.stack([ii[ok] * step + lo[0], jj[ok] * step + lo[1], kk[ok] * step + lo[2]], 1)
                         .astype(float))
     face = float(np.prod(sp)) / float(sp.min())                            # mm^2 of boundary per shell voxel, about
-    out = []
+    found = []
     w = float(sp.min())
     for side, g0 in DEPENDENT_SIDES.items():
         g0 = np.asarray(g0, float)
-        sel = n @ g0 > np.cos(np.radians(ROLL_MAX_DEG))
-        if sel.sum() * face < min_level_mm2:
-            continue
-        # the plane through the most of those points: the densest slab along g0, then least squares (its normal the
-        # covariance's least axis), again on the points within a voxel of that plane (a staircase's own normals
-        # lean toward the grid's axes; its points do not)
-        m, q = g0, p[sel]
-        for _ in range(4):
+        for roll in ROLL_STARTS_DEG:
+            t = np.radians(roll)
+            m = np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]]) @ g0
+            sel = n @ m > np.cos(np.radians(ROLL_MAX_DEG))
+            if sel.sum() * face < min_level_mm2:
+                continue
+            # the plane through the most of those points: the densest slab along m, then least squares (its normal
+            # the covariance's least axis), again on the points within 1.5 voxels of that plane (a staircase's own
+            # normals lean toward the grid's axes; its points do not)
+            q = p[sel]
+            for _ in range(4):
+                d = q @ m
+                hist = np.bincount(np.floor((d - d.min()) / w).astype(np.int64))
+                b = int(np.argmax(hist[:-1] + hist[1:])) if len(hist) > 1 else 0
+                on = np.abs(d - (d.min() + (b + 1.0) * w)) <= 1.5 * w
+                if on.sum() < 10:
+                    break
+                c = q[on] - q[on].mean(0)
+                m_new = np.linalg.eigh(c.T @ c)[1][:, 0]
+                m = m_new * (1.0 if m_new @ m >= 0 else -1.0)
+            tilt = float(np.degrees(np.arccos(np.clip(m @ g0, -1.0, 1.0))))
+            if tilt < UPRIGHT_TILT_DEG or tilt > ROLL_MAX_DEG:
+                continue
             d = q @ m
-            hist = np.bincount(np.floor((d - d.min()) / w).astype(np.int64))
+            b0 = np.floor((d - d.min()) / w).astype(np.int64)
+            hist = np.bincount(b0)
             b = int(np.argmax(hist[:-1] + hist[1:])) if len(hist) > 1 else 0
-            mid = d.min() + (b + 1.0) * w
-            on = np.abs(d - mid) <= 1.5 * w
-            if on.sum() < 10:
-                break
-            c = q[on] - q[on].mean(0)
-            evals, evecs = np.linalg.eigh(c.T @ c)
-            m_new = evecs[:, 0] * (1.0 if evecs[:, 0] @ g0 >= 0 else -1.0)
-            if np.degrees(np.arccos(np.clip(m_new @ g0, -1.0, 1.0))) > ROLL_MAX_DEG:
-                break
-            m = m_new
-        tilt = float(np.degrees(np.arccos(np.clip(m @ g0, -1.0, 1.0))))
-        if tilt < UPRIGHT_TILT_DEG or tilt > ROLL_MAX_DEG:
+            slab = (b0 == b) | (b0 == b + 1)
+            if slab.sum() * face >= min_level_mm2:
+                found.append((float(slab.sum()) * face, side, m, q[slab]))
+    out = []
+    for _, side, m, pts in sorted(found, key=lambda x: -x[0]):             # the largest first, each plane once
+        if len(out) >= MAX_TILTED_LEVELS:
+            break
+        if any(np.degrees(np.arccos(np.clip(m @ m2, -1.0, 1.0))) <= 3.0 for _, m2 in out):
             continue
-        d = q @ m
-        hist = np.bincount(np.floor((d - d.min()) / w).astype(np.int64))
-        if len(hist) > 1:
-            hist = hist[:-1] + hist[1:]
-        if hist.max() * face >= min_level_mm2:
+        if _water_beyond(ct, pts, m, max_hu) >= FLUID_MIN_WATER_FRACTION:
             out.append((side, m))
     return out
 

@@ -8,6 +8,7 @@ import pytest
 from scipy import ndimage
 
 from StomachUnfoldLib.geometry import Volume
+from StomachUnfoldLib import preprocessing
 from StomachUnfoldLib.preprocessing import air_region, fluid_below_level
 
 LEVEL_Y = 6.0                      # LPS y of the air-fluid level, mm (the fluid is posterior: y > LEVEL_Y)
@@ -317,7 +318,7 @@ def test_a_dense_pool_under_a_level_is_not_taken_for_water_but_said(geometry):
         assert not any("dense contents" in m for m in warned)
 
 
-@pytest.mark.parametrize("degrees", [-12.0, 8.0])
+@pytest.mark.parametrize("degrees", [-12.0, 8.0, 21.0, -27.0])
 def test_water_under_a_tilted_level_of_a_rolled_patient_joins_the_lumen(degrees):
     """A patient rolled about the S axis: gravity, and the level, tilt from LPS y = const. The level is found as a flat
     part of the air's boundary, its tilt said, and the pool joins the lumen (it had been left out without a word)."""
@@ -333,3 +334,31 @@ def test_water_under_a_tilted_level_of_a_rolled_patient_joins_the_lumen(degrees)
     assert dice(lumen & ~air, fluid_true) > 0.9 and dice(lumen, lumen_true) > 0.95
     said = [m for m in info["warnings"] if "retained fluid below an air-fluid level" in m]
     assert len(said) == 1 and "a patient rolled in the scanner" in said[0]
+
+
+@pytest.mark.parametrize("noise_hu", [25.0, 45.0])
+def test_a_tilted_flat_boundary_on_tissue_is_not_tried_as_a_level_and_water_under_one_is(noise_hu, monkeypatch):
+    """A rolled patient's flat air boundary lying on tissue (50 HU) has no water beyond it: the cheap test refuses the
+    plane before any ray is run (a gas-only full-size CT had paid 1-2 s a plane); the same plane over water passes it,
+    in noisy CT too, and is the one tried."""
+    t = np.radians(17.0)
+    g = np.array([np.sin(t), np.cos(t), 0.0])
+    calls = []
+    real = preprocessing._water_beyond
+
+    def spy(*args):
+        calls.append(real(*args))
+        return calls[-1]
+
+    for contents in ("tissue", "water"):
+        ct, _, _ = make_ct("identity", contents, dependent=g, noise_hu=noise_hu)
+        air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+        calls.clear()
+        monkeypatch.setattr(preprocessing, "_water_beyond", spy)
+        planes = preprocessing._tilted_levels(ct, air, 300.0, 25.0)
+        assert calls, "no flat part of the boundary was found to test"
+        if contents == "tissue":
+            assert planes == [] and max(calls) < preprocessing.FLUID_MIN_WATER_FRACTION
+        else:
+            assert 1 <= len(planes) <= preprocessing.MAX_TILTED_LEVELS and max(calls) > 0.5
+            assert np.degrees(np.arccos(np.clip(planes[0][1] @ g, -1.0, 1.0))) < 3.0
