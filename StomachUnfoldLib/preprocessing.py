@@ -580,26 +580,51 @@ def dense_object_edges(fluid: np.ndarray, air: np.ndarray, sm: np.ndarray, max_h
 
 
 #: Under a flat level whose contents read over this (HU, the median of DENSE_POOL_DEPTH_MM mm under the partial-volume
-#: band, on half the level or more) lies a dense pool (positive oral contrast), not water and not the wall: it is not
-#: taken into the lumen, but said (its surface would be drawn as mucosa; a stomach label clears it).
+#: band, on half the level or more) lies a dense pool (fluid with positive oral contrast), not water and not the wall:
+#: it joins the lumen as the water does, each ray ending where the HU falls half-way from the pool's median to
+#: DENSE_WALL_HU (:func:`_dense_pool_depths`), and is said (before, its surface was drawn as mucosa and the wall under it
+#: hidden, with a warning that asked for a stomach label).
 DENSE_POOL_HU = 200.0
 DENSE_POOL_DEPTH_MM = 5.0
+#: The HU of the wall under a dense pool (soft tissue, unenhanced to arterial), for the pool's edge.
+DENSE_WALL_HU = 40.0
+#: A dense pool's rays end where the HU has fallen half-way from the pool's median to DENSE_WALL_HU (the blurred
+#: step's edge, where the wall begins), or to this (HU) if lower: the contrast's blur beyond the edge would otherwise
+#: lie on the mucosa as a coat of 150-250 HU speckled over the view's dense colour (200 HU), the markers under it merged
+#: into it (tuning seeds, 350 HU pools: 0 of 5 seen at the half-way edge). A wall enhanced to 100-120 HU still stops
+#: the rays.
+DENSE_EDGE_MAX_HU = 140.0
 
 
 @dataclass
 class _DensePool:
-    """A flat level with dense contents under it: the level's LPS y (mm, in the frame it was found in) and their
-    median HU."""
+    """A flat level with dense contents under it: the level's LPS y (mm, in the frame it was found in), their median
+    HU, and their rays' edge (HU: the pool ends where the HU falls below it)."""
 
     level_y: float
     hu: float
+    edge_hu: float
+
+
+def _dense_pool_depths(prof: np.ndarray, inside: np.ndarray, n_partial: int, pool: "_DensePool", rel2: np.ndarray,
+                       grid: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Voxels of a dense pool under each level voxel (rays' HU profiles ``prof``): through the ``n_partial``
+    air-pool voxels, then while the HU stays within the pool's range (from ``pool.edge_hu``, DENSE_EDGE_MAX_HU or the
+    half-way edge of the pool's blurred step down to the wall, to as far above the pool's median HU as that half-way
+    edge is below it: a marker bead, clip or calcification on the floor stays); the 5 x 5 median of those depths across the level, never past a ray's own end. Returns the
+    depths and the voxels in the range (rays x samples)."""
+    top = 2.0 * pool.hu - 0.5 * (pool.hu + DENSE_WALL_HU)
+    ok = inside & (((prof >= pool.edge_hu) & (prof <= top)) | (np.arange(prof.shape[1])[None, :] < n_partial))
+    run = np.argmax(np.concatenate([~ok, np.ones((len(ok), 1), bool)], axis=1), axis=1)
+    med = _level_median(run.astype(np.int64), rel2, grid, "constant")
+    return np.minimum(med, np.count_nonzero(inside, axis=1)), ok
 
 
 def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: float, min_level_mm2: float,
                    max_depth_mm: float):
     """The water under the air's flat level, its rays run down the grid axis closest to LPS +y (see
-    :func:`fluid_below_level`): (fluid mask, level's LPS y mm), a _DensePool (the level has dense contents under it), or
-    None (no level, or too little water under it)."""
+    :func:`fluid_below_level`): (fluid mask, level's LPS y mm, a _DensePool where the level has dense contents under
+    it, else None), or None (no level, or neither water nor a dense pool under it)."""
     shape = air.shape
     ji = air.any(axis=0)  # the air's box, from one projection (the whole-volume reductions cost 3x more)
     j_, i_ = np.flatnonzero(ji.any(axis=1)), np.flatnonzero(ji.any(axis=0))
@@ -649,32 +674,39 @@ def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
     med = _level_median(run.astype(np.int64), rel2, grid, "constant")
     take = offs[None, :] <= np.minimum(run, med + 2)[:, None]
     water = np.count_nonzero(take & ok & (offs[None, :] > n_partial), axis=1) >= 2
+    pool = None
     if float(np.mean(water)) < FLUID_MIN_WATER_FRACTION:
-        # a flat air boundary on tissue, not on water; or on a dense pool (positive oral contrast), said by the caller
+        # a flat air boundary on tissue, not on water; or on a dense pool (positive oral contrast)
         under = (offs > n_partial) & (offs <= n_partial + max(2, int(np.ceil(DENSE_POOL_DEPTH_MM / w))))
         hu_under = np.median(np.where(inside[:, under], prof[:, under], np.nan), axis=1)
-        if float(np.mean(np.nan_to_num(hu_under, nan=-1000.0) > DENSE_POOL_HU)) >= 0.5:
-            return _DensePool(level_y, float(np.nanmedian(hu_under)))
-        return None
-    # the fluid's floor: the 5 x 5 median of the rays' depths (no pillar left by a ray a noise voxel stopped,
-    # no spike where a ray went through a thin wall)
-    depth = np.minimum(med, np.count_nonzero(inside, axis=1))
-    depth -= _falling_floor(depth, prof, n_partial, rel2, grid)
-    take = offs[None, :] <= depth[:, None]
-    take &= prof <= max_hu + 50.0  # never over a marker, calcification or contrast the median reached
+        if float(np.mean(np.nan_to_num(hu_under, nan=-1000.0) > DENSE_POOL_HU)) < 0.5:
+            return None
+        pool_hu = float(np.nanmedian(hu_under))
+        pool = _DensePool(level_y, pool_hu, min(0.5 * (pool_hu + DENSE_WALL_HU), DENSE_EDGE_MAX_HU))
+        depth, ok_pool = _dense_pool_depths(prof, inside, n_partial, pool, rel2, grid)
+        take = (offs[None, :] <= depth[:, None]) & ok_pool
+    else:
+        # the fluid's floor: the 5 x 5 median of the rays' depths (no pillar left by a ray a noise voxel stopped,
+        # no spike where a ray went through a thin wall)
+        depth = np.minimum(med, np.count_nonzero(inside, axis=1))
+        depth -= _falling_floor(depth, prof, n_partial, rel2, grid)
+        take = offs[None, :] <= depth[:, None]
+        take &= prof <= max_hu + 50.0  # never over a marker, calcification or contrast the median reached
     r, c = np.nonzero(take)
     along = pos[r, c] if st > 0 else (hu.shape[ax] - 1 - pos[r, c])
     vox = np.insert(rel2[r], ax, along, axis=1) + r_lo
     fluid = np.zeros(shape, bool)
     fluid[tuple(vox.T)] = True
     fluid &= ~air
+    if pool is not None:
+        return fluid, level_y, pool
     if evidence:
         along = np.arange(hu.shape[ax]).reshape([-1 if a == ax else 1 for a in range(3)])
         fluid[rbox] = close_water_gaps(fluid[rbox], air[rbox], sm, ax, along > rel[:, ax].min() if st > 0
                                        else along < rel[:, ax].max(), max_hu)
     fluid[rbox] = dense_object_edges(fluid[rbox], air[rbox], sm, max_hu)
     del sm
-    return fluid, level_y
+    return fluid, level_y, None
 
 
 #: A grid whose axis closest to LPS +y is tilted from it by more than this (degrees: an oblique reformat, a volume
@@ -713,7 +745,7 @@ def _fluid_upright(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
     """:func:`_fluid_on_grid` on the air's part of an oblique CT copied (nearest voxel) onto a grid of the same voxel
     size turned upright (:func:`_upright_direction`), its water mapped back to the CT's voxels (nearest) and closed
     where it meets the air (voxels touching both, at most ``max_hu`` HU) and in single voxels the round trip left
-    between its own: (fluid mask, level's LPS y mm), or None."""
+    between its own: as :func:`_fluid_on_grid`."""
     sp = np.asarray(ct.spacing, float)
     lo, hi = bounding_box(air, (3, 3, 3))                        # (i, j, k), hi exclusive
     corners = np.array([[i, j, k] for i in (lo[0], hi[0] - 1) for j in (lo[1], hi[1] - 1) for k in (lo[2], hi[2] - 1)],
@@ -742,12 +774,12 @@ def _fluid_upright(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
     air_up = ((_resampled(hu_sub, sub, up, True, -1024.0) < threshold_hu)
               & ndimage.binary_dilation(_resampled(air[box], sub, up, False, 0.0) > 0.5, np.ones((3, 3, 3), bool)))
     found = _fluid_on_grid(up, air_up, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
-    if found is None or isinstance(found, _DensePool):
-        return found
-    fluid_up, level_y = found
+    if found is None:
+        return None
+    fluid_up, level_y, pool = found
     f_sub = (_resampled(fluid_up, up, sub, False, 0.0) > 0.5) & ~air[box]
     touching = ndimage.binary_dilation(f_sub) & ndimage.binary_dilation(air[box])
-    f_sub |= touching & ~air[box] & (hu_sub <= max_hu)
+    f_sub |= touching & ~air[box] & ((hu_sub <= max_hu) if pool is None else (hu_sub >= pool.edge_hu))
     # single voxels the nearest-voxel round trip left between the water's voxels (enclosed, at most 3 together)
     holes, n_holes = ndimage.label(ndimage.binary_fill_holes(f_sub | air[box]) & ~f_sub & ~air[box])
     if n_holes:
@@ -755,7 +787,7 @@ def _fluid_upright(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
         f_sub |= np.isin(holes, small)
     fluid = np.zeros(air.shape, bool)
     fluid[box] = f_sub
-    return fluid, level_y
+    return fluid, level_y, pool
 
 
 def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, threshold_hu: float = -500.0,
@@ -790,12 +822,15 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     Fluid is kept only if at least ``FLUID_MIN_WATER_FRACTION`` of the level has two or more water voxels under it
     (each ray clipped to two voxels beyond that median; an air boundary lying flat on tissue has none), and refused
     with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
+    A level with dense contents under it instead (over DENSE_POOL_HU: fluid with positive oral contrast) has them
+    taken the same way, each ray through the pool to its half-way edge (:func:`_dense_pool_depths`), if no side or
+    tilted level has water.
 
     Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
     of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level or a level on the left or
     right or tilted), ``fluid_dependent_side`` (a key of DEPENDENT_SIDES or None), ``fluid_gravity_lps`` (the unit
     normal of the level it was found under, LPS), ``fluid_level_text`` (the level's place, for messages),
-    ``fluid_dense_hu`` (where a dense pool was said) and ``warnings`` (list of str).
+    ``fluid_dense_hu`` (the median HU of a dense pool taken) and ``warnings`` (list of str).
     """
     air = np.asarray(air, bool)
     info = {"fluid_voxels": 0, "fluid_ml": 0.0, "fluid_level_lps_y": None, "fluid_dependent_side": None,
@@ -812,38 +847,49 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
             ct_g, air, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
         if found is None:
             continue
-        if isinstance(found, _DensePool):
-            dense = dense or (side, gravity, found)
+        if found[2] is not None:                       # a dense pool: taken only if no side has water
+            dense = dense or (side, gravity, Q, found)
             continue
-        fluid, level = found
-        n = int(np.count_nonzero(fluid))
-        ras, lps_y = _level_place(gravity, level, side)
-        n_air = int(np.count_nonzero(air))
-        problem = ""
-        if n > max_air_ratio * n_air:
-            problem = f"is {n / max(n_air, 1):.1f} times the air volume (over {max_air_ratio:g})"
-        elif _touches_faces(fluid, (0, 1, 2)):
-            problem = "reaches the side of the volume"
-        if problem and Q is not None:
-            continue                                   # another side's "water" leaking: not a level at all
-        info.update(fluid_level_lps_y=lps_y, fluid_dependent_side=side,
-                    fluid_level_text=ras, fluid_gravity_lps=[float(x) for x in gravity])
-        if problem:
-            info["warnings"].append(f"a flat air-fluid level was found at {ras} but the fluid-like voxels below it "
-                                    f"{problem}: they leak into the body and were not added to the lumen (check "
-                                    "the CT, or pass a stomach label with --mask)")
-            return none, info
-        info["fluid_voxels"] = n
-        info["fluid_ml"] = n * float(np.prod(ct.spacing)) / 1000.0
-        return fluid, info
+        taken = _take_fluid(info, found, side, gravity, Q, air, ct, max_air_ratio)
+        if taken is not None:
+            return taken, info
     if dense is not None:
-        side, gravity, pool = dense
-        info["fluid_dense_hu"] = pool.hu
-        info["warnings"].append(f"a flat level at {_level_place(gravity, pool.level_y, side)[0]} on the {side} wall has "
-                                f"dense contents under it (median {pool.hu:.0f} HU: oral contrast?); they are not "
-                                "water, so their surface is drawn as mucosa and the wall under them is hidden: pass a "
-                                "stomach label with --mask, whose contents are shown as air")
+        side, gravity, Q, found = dense
+        taken = _take_fluid(info, found, side, gravity, None, air, ct, max_air_ratio)
+        if taken is not None:
+            return taken, info
     return none, info
+
+
+def _take_fluid(info: dict, found: tuple, side: str, gravity, Q, air: np.ndarray, ct: Volume,
+                max_air_ratio: float) -> np.ndarray | None:
+    """The fluid mask ``found`` under a level (see :func:`_fluid_on_grid`) checked for a leak and written into
+    ``info`` (see :func:`fluid_below_level`): the mask, an empty mask where it leaks (said in ``info["warnings"]``), or
+    None where another side's (``Q`` not None) leaks: not a level at all, passed over without a word."""
+    fluid, level, pool = found
+    n = int(np.count_nonzero(fluid))
+    ras, lps_y = _level_place(gravity, level, side)
+    n_air = int(np.count_nonzero(air))
+    problem = ""
+    if n > max_air_ratio * n_air:
+        problem = f"is {n / max(n_air, 1):.1f} times the air volume (over {max_air_ratio:g})"
+    elif _touches_faces(fluid, (0, 1, 2)):
+        problem = "reaches the side of the volume"
+    if problem and Q is not None:
+        return None
+    info.update(fluid_level_lps_y=lps_y, fluid_dependent_side=side,
+                fluid_level_text=ras, fluid_gravity_lps=[float(x) for x in gravity])
+    what = "fluid-like" if pool is None else f"dense (median {pool.hu:.0f} HU)"
+    if pool is not None:
+        info["fluid_dense_hu"] = pool.hu
+    if problem:
+        info["warnings"].append(f"a flat air-fluid level was found at {ras} but the {what} voxels below it "
+                                f"{problem}: they leak into the body and were not added to the lumen (check "
+                                "the CT, or pass a stomach label with --mask)")
+        return np.zeros(air.shape, bool)
+    info["fluid_voxels"] = n
+    info["fluid_ml"] = n * float(np.prod(ct.spacing)) / 1000.0
+    return fluid
 
 
 def _level_place(gravity, level: float, side: str = "posterior") -> tuple[str, float | None]:
@@ -1106,7 +1152,9 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
         box = (slice(lo[2], hi[2]), slice(lo[1], hi[1]), slice(lo[0], hi[0]))
         region[box] |= fluid[box]  # in the fluid's box only: the rest of region stays untouched zero pages
         side = info["fluid_dependent_side"]
-        warnings.append(f"retained fluid below an air-fluid level at {info['fluid_level_text']}"
+        dense = (f" (dense, median {info['fluid_dense_hu']:.0f} HU: positive oral contrast?)"
+                 if info.get("fluid_dense_hu") is not None else "")
+        warnings.append(f"retained fluid{dense} below an air-fluid level at {info['fluid_level_text']}"
                         + ("" if side == "posterior" else f", on the {side} wall ("
                            + ("a prone scan" if side == "anterior" else f"the patient on the {side} side") + ")")
                         + f", {info['fluid_ml']:.0f} mL, was added to the lumen; its contents are shown as air "
