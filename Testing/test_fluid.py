@@ -365,3 +365,20 @@ def test_a_tilted_flat_boundary_on_tissue_is_not_tried_as_a_level_and_water_unde
         else:
             assert 1 <= len(planes) <= preprocessing.MAX_TILTED_LEVELS and max(calls) > 0.5
             assert np.degrees(np.arccos(np.clip(planes[0][1] @ g, -1.0, 1.0))) < 3.0
+
+
+def test_a_drawn_stomach_with_positive_contrast_shows_the_markers_under_it(monkeypatch):
+    """Tiny random stomach 2 with its retained fluid drawn at 350 HU (positive oral contrast) unfolds with the pool in
+    the lumen and every marker under it seen, as with water; before, the pool's surface was drawn as mucosa (none of
+    them seen)."""
+    from StomachUnfoldEval import bench
+    from StomachUnfoldEval.random_stomach import random_stomach
+
+    monkeypatch.setattr(bench, "_cached", lambda src, cache: random_stomach(2, "tiny", fluid_hu=350.0))
+    row = bench.run_case(bench.Case("stomach-2/isometric-contrast", {"random": 2, "size": "tiny"}, {},
+                                    method="isometric", group="contrast"))
+    assert row["ok"], row.get("error")
+    said = [w for w in row["warnings"] if "retained fluid (dense, median" in w]
+    assert len(said) == 1 and 250 < float(said[0].split("median ")[1].split(" HU")[0]) < 450
+    seen, total = row["quality"]["markers"]["by_region"]["under_fluid"]
+    assert total >= 2 and seen == total and row["quality"]["grade"] == "excellent"
