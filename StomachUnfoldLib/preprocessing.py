@@ -579,11 +579,11 @@ def dense_object_edges(fluid: np.ndarray, air: np.ndarray, sm: np.ndarray, max_h
     return out
 
 
-#: Under a flat level whose contents read over this (HU, the median of DENSE_POOL_DEPTH_MM mm under the partial-volume
-#: band, on half the level or more) lies a dense pool (fluid with positive oral contrast), not water and not the wall:
-#: it joins the lumen as the water does, each ray ending where the HU falls half-way from the pool's median to
-#: DENSE_WALL_HU (:func:`_dense_pool_depths`), and is said (before, its surface was drawn as mucosa and the wall under it
-#: hidden, with a warning that asked for a stomach label).
+#: Under a flat level whose contents read over this (HU: each ray's largest in DENSE_POOL_DEPTH_MM mm under the
+#: partial-volume band, over it on half the level or more; the pool's HU is the median of those) lies a dense pool
+#: (fluid with positive oral contrast), not water and not the wall: it joins the lumen as the water does, each ray
+#: ending at the pool's edge against the wall (:func:`_dense_pool_depths`), and is said (before, its surface was drawn
+#: as mucosa and the wall under it hidden, with a warning that asked for a stomach label).
 DENSE_POOL_HU = 200.0
 DENSE_POOL_DEPTH_MM = 5.0
 #: The HU of the wall under a dense pool (soft tissue, unenhanced to arterial), for the pool's edge.
@@ -608,14 +608,16 @@ class _DensePool:
 
 def _dense_pool_depths(prof: np.ndarray, inside: np.ndarray, n_partial: int, pool: "_DensePool", rel2: np.ndarray,
                        grid: tuple) -> tuple[np.ndarray, np.ndarray]:
-    """Voxels of a dense pool under each level voxel (rays' HU profiles ``prof``): through the ``n_partial``
-    air-pool voxels, then while the HU stays within the pool's range (from ``pool.edge_hu``, DENSE_EDGE_MAX_HU or the
-    half-way edge of the pool's blurred step down to the wall, to as far above the pool's median HU as that half-way
-    edge is below it: a marker bead, clip or calcification on the floor stays); the 5 x 5 median of those depths across the level, never past a ray's own end. Returns the
-    depths and the voxels in the range (rays x samples)."""
+    """Voxels of a dense pool under each level voxel (rays' HU profiles ``prof``) and the voxels in its range.
+
+    The range runs from ``pool.edge_hu`` (DENSE_EDGE_MAX_HU or the half-way edge of the pool's blurred step down to
+    the wall) to as far above the pool's median HU as that half-way edge is below it (a marker bead, clip or
+    calcification on the floor stays). Each ray crosses the ``n_partial`` air-pool voxels, then runs to two voxels in
+    a row outside the range (one is noise); the depths are the 5 x 5 median of the runs across the level, never past a
+    ray's own end. Returns (depths, in range: rays x samples)."""
     top = 2.0 * pool.hu - 0.5 * (pool.hu + DENSE_WALL_HU)
     ok = inside & (((prof >= pool.edge_hu) & (prof <= top)) | (np.arange(prof.shape[1])[None, :] < n_partial))
-    run = np.argmax(np.concatenate([~ok, np.ones((len(ok), 1), bool)], axis=1), axis=1)
+    run = np.argmax(np.concatenate([_this_and_next(~ok), np.ones((len(ok), 1), bool)], axis=1), axis=1)
     med = _level_median(run.astype(np.int64), rel2, grid, "constant")
     return np.minimum(med, np.count_nonzero(inside, axis=1)), ok
 
@@ -678,7 +680,8 @@ def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
     if float(np.mean(water)) < FLUID_MIN_WATER_FRACTION:
         # a flat air boundary on tissue, not on water; or on a dense pool (positive oral contrast)
         under = (offs > n_partial) & (offs <= n_partial + max(2, int(np.ceil(DENSE_POOL_DEPTH_MM / w))))
-        hu_under = np.median(np.where(inside[:, under], prof[:, under], np.nan), axis=1)
+        # each ray's largest HU in the window: a shallow pool's median would take in the wall under it
+        hu_under = np.nanmax(np.where(inside[:, under], prof[:, under], np.nan), axis=1)
         if float(np.mean(np.nan_to_num(hu_under, nan=-1000.0) > DENSE_POOL_HU)) < 0.5:
             return None
         pool_hu = float(np.nanmedian(hu_under))
