@@ -826,8 +826,8 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     (each ray clipped to two voxels beyond that median; an air boundary lying flat on tissue has none), and refused
     with a warning if it leaks: more than ``max_air_ratio`` times the air volume, or touching the side of the volume.
     A level with dense contents under it instead (over DENSE_POOL_HU: fluid with positive oral contrast) has them
-    taken the same way, each ray through the pool to its half-way edge (:func:`_dense_pool_depths`), if no side or
-    tilted level has water.
+    taken the same way, each ray through the pool to its edge against the wall (:func:`_dense_pool_depths`), if no
+    side or tilted level has water.
 
     Returns ``(fluid, info)`` with ``info``: ``fluid_voxels``, ``fluid_ml`` (mL), ``fluid_level_lps_y`` (LPS y
     of the level, mm, sub-voxel from where the HU crosses ``threshold_hu``; None when no level or a level on the left or
@@ -858,7 +858,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
             return taken, info
     if dense is not None:
         side, gravity, Q, found = dense
-        taken = _take_fluid(info, found, side, gravity, None, air, ct, max_air_ratio)
+        taken = _take_fluid(info, found, side, gravity, Q, air, ct, max_air_ratio)
         if taken is not None:
             return taken, info
     return none, info
