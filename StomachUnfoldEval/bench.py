@@ -20,8 +20,8 @@ from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
 from .memory import memory_markdown, memory_plot, memory_runs
-from .oblique import (PRONE_GROUP, ROLLED_GROUP, front_to_back, oblique_cases, oblique_markdown, prone_cases, rolled,
-                      rolled_cases, turned_grid)
+from .oblique import (CONTRAST_GROUP, PRONE_GROUP, ROLLED_GROUP, contrast_cases, front_to_back, oblique_cases,
+                      oblique_markdown, prone_cases, rolled, rolled_cases, turned_grid)
 from .raster_phase import phase_cases, phase_markdown
 from .regional import area_scale_along, area_scale_summary
 
@@ -122,7 +122,8 @@ def _cached(source: dict, cache_dir: str | None):
 
     from .random_stomach import HYBRID_DRAWING, insert_into_ct, random_stomach
 
-    key = (f"random-{source['random']}-{source.get('size', 'small')}" if "random" in source
+    fluid = f"-fluid{float(source['fluid_hu']):g}" if source.get("fluid_hu") is not None else ""  # part ``contrast``
+    key = (f"random-{source['random']}-{source.get('size', 'small')}{fluid}" if "random" in source
            else f"hybrid-{source['hybrid']}-{os.path.basename(source['ct']).split('.')[0]}"
            + (f"-d{HYBRID_DRAWING}" if HYBRID_DRAWING != 1 else ""))
     if cache_dir:
@@ -131,7 +132,8 @@ def _cached(source: dict, cache_dir: str | None):
             with open(json_path) as f:
                 return read_volume(vol_path), json.load(f)
     if "random" in source:
-        ct, truth = random_stomach(int(source["random"]), source.get("size", "small"))
+        extra = {"fluid_hu": float(source["fluid_hu"])} if source.get("fluid_hu") is not None else {}
+        ct, truth = random_stomach(int(source["random"]), source.get("size", "small"), **extra)
     else:
         ct, truth = insert_into_ct(read_volume(source["ct"]), int(source["hybrid"]))
     if cache_dir:
@@ -412,6 +414,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += prone_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "rolled" in parts:
         cases += rolled_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
+    if "contrast" in parts:
+        cases += contrast_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "phase" in parts:
         cases += phase_cases(quick, data_dir, _real_cts(data_dir), _phantom_cache(None), Case)
     if "surfacebound" in parts:
@@ -1196,6 +1200,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     L += oblique_markdown(rows, "stomachs-held-out")
     L += oblique_markdown(rows, "stomachs-held-out", PRONE_GROUP)
     L += oblique_markdown(rows, "stomachs-held-out", ROLLED_GROUP)
+    L += oblique_markdown(rows, "stomachs-held-out", CONTRAST_GROUP)
     L += phase_markdown(rows)
     L += surface_bound_markdown(rows)
     L += memory_markdown(rows)

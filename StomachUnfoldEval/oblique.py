@@ -18,6 +18,10 @@ them), so its water lies on the anterior wall, as a prone patient's does, and th
 A patient is rarely lying square in the scanner. The ``rolled`` part turns each held-out stomach's LPS about the S
 axis by an angle drawn per seed (ROLL_DEGREES, either way; :func:`rolled`): the same voxels, the anatomy turned in the
 patient's frame and gravity not, so the water's level is tilted that much from LPS y = const.
+
+The family's retained fluid is water (5-15 HU). Many abdominal CTs are taken after positive oral contrast, whose fluid
+reads 200-1000 HU. The ``contrast`` part draws each held-out stomach that has a pool again with its fluid at a HU drawn
+per seed (CONTRAST_HU, :func:`contrast_hu_of`): the same anatomy, markers and level.
 """
 from __future__ import annotations
 
@@ -35,6 +39,9 @@ OBLIQUE_METHODS = ("isometric", "cylindrical", "lscm")
 GROUP = "oblique"
 PRONE_GROUP = "prone"
 ROLLED_GROUP = "rolled"
+CONTRAST_GROUP = "contrast"
+#: The HU of a volume's fluid in part ``contrast`` (positive oral contrast; drawn uniformly between the two per seed).
+CONTRAST_HU = (300.0, 900.0)
 #: How far each volume is rolled about the S axis (degrees, drawn uniformly between the two per seed, either way).
 ROLL_DEGREES = (5.0, 20.0)
 #: LPS mirrored front to back (y negated): a supine scene whose water then lies anteriorly, as a prone patient's.
@@ -43,8 +50,8 @@ FRONT_TO_BACK = np.diag([1.0, -1.0, 1.0])
 VISIBLE_DROP = 0.005
 
 __all__ = ["turned_grid", "grid_turn", "front_to_back", "rolled", "roll_of", "oblique_cases", "prone_cases",
-           "rolled_cases", "oblique_summary", "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS", "ROLL_DEGREES",
-           "GROUP", "PRONE_GROUP", "ROLLED_GROUP"]
+           "rolled_cases", "contrast_cases", "contrast_hu_of", "oblique_summary", "oblique_markdown", "OBLIQUE_DEGREES",
+           "OBLIQUE_METHODS", "ROLL_DEGREES", "CONTRAST_HU", "GROUP", "PRONE_GROUP", "ROLLED_GROUP", "CONTRAST_GROUP"]
 
 
 def _rotation(axis, degrees: float) -> np.ndarray:
@@ -131,6 +138,24 @@ def rolled_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
             for m in OBLIQUE_METHODS for seed in seeds]
 
 
+def contrast_hu_of(seed: int) -> float:
+    """The HU of seed's fluid in part ``contrast`` (positive oral contrast, within CONTRAST_HU)."""
+    return float(np.random.default_rng(9_000_023 + int(seed)).uniform(*CONTRAST_HU))
+
+
+def contrast_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
+    """The ``contrast`` part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed whose stomach has a pool,
+    drawn again with its fluid at :func:`contrast_hu_of` HU."""
+    from .random_stomach import draw_parameters
+
+    seeds = [int(s) for s in seeds if draw_parameters(int(s), "small")["fluid"]]
+    seeds = seeds[:2] if quick else seeds
+    return [case(f"stomach-{seed}/{m}-contrast", {"random": seed, "size": "small", "_cache": cache,
+                                                  "fluid_hu": round(contrast_hu_of(seed), 1)}, {}, method=m,
+                 group=CONTRAST_GROUP)
+            for m in OBLIQUE_METHODS for seed in seeds]
+
+
 def front_to_back(ct: Volume, truth: dict) -> tuple[Volume, dict]:
     """The CT (HU) and its truth as a prone patient's scan: the same voxels with LPS y negated (FRONT_TO_BACK), so the
     water a supine drawing put on the posterior wall lies on the anterior one; every LPS point (mm) of the truth
@@ -167,7 +192,7 @@ def oblique_summary(rows: list[dict], aligned_group: str, group: str = GROUP) ->
     time median (s), and on the oblique grid the volumes whose visible mucosa falls by over VISIBLE_DROP or that see
     fewer markers than as drawn."""
     turned = [r for r in rows if r.get("group") == group]
-    label_turned = {PRONE_GROUP: "prone", ROLLED_GROUP: "rolled"}.get(group, "oblique")
+    label_turned = {PRONE_GROUP: "prone", ROLLED_GROUP: "rolled", CONTRAST_GROUP: "contrast"}.get(group, "oblique")
     out = []
     for m in OBLIQUE_METHODS:
         mine = {_volume(r): r for r in turned if r["method"] == m}
@@ -211,7 +236,14 @@ def oblique_markdown(rows: list[dict], aligned_group: str, group: str = GROUP) -
     if not summ:
         return []
     lo, hi = OBLIQUE_DEGREES
-    if group == ROLLED_GROUP:
+    if group == CONTRAST_GROUP:
+        clo, chi = CONTRAST_HU
+        head = [f"## Contrast: the held-out random stomachs with a pool, its fluid drawn at {clo:g}-{chi:g} HU\n",
+                "Each volume whose stomach holds fluid drawn again with the fluid at a HU drawn per seed (positive oral "
+                "contrast; the anatomy, level and markers the same); *as drawn*: the `stomachs` part's rows on the same "
+                f"volumes (water). *lower*: volumes whose visible mucosa falls by over {100 * VISIBLE_DROP:g} point; "
+                "*fewer markers*: volumes that see fewer markers than with water.\n"]
+    elif group == ROLLED_GROUP:
         rlo, rhi = ROLL_DEGREES
         head = [f"## Rolled: the held-out random stomachs as patients rolled {rlo:g}-{rhi:g} degrees about the S "
                 "axis\n",

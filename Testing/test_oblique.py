@@ -189,3 +189,27 @@ def test_rolled_turns_the_frame_about_s_and_every_lps_point_with_it():
     assert np.allclose(p1, [-p0[1], p0[0], p0[2]])
     r = [roll_of(s) for s in range(1000, 1030)]
     assert all(5.0 <= abs(x) <= 20.0 for x in r) and min(r) < 0 < max(r)
+
+
+def test_the_contrast_part_draws_each_pool_at_its_contrast_hu_and_caches_it_apart(tmp_path):
+    """Part ``contrast``: only held-out stomachs with a pool, each drawn again with its fluid at a HU within
+    CONTRAST_HU (the same anatomy, level and markers), cached under its own name beside the water's draw."""
+    from StomachUnfoldEval.bench import Case, _cached
+    from StomachUnfoldEval.oblique import CONTRAST_GROUP, CONTRAST_HU, contrast_cases, contrast_hu_of
+    from StomachUnfoldEval.random_stomach import draw_parameters
+
+    seeds = list(range(1000, 1030))
+    cases = contrast_cases(False, seeds, str(tmp_path), Case)
+    wet = [s for s in seeds if draw_parameters(s, "small")["fluid"]]
+    assert 0 < len(wet) < len(seeds) and len(cases) == 3 * len(wet)
+    assert {c["source"]["random"] for c in cases} == set(wet) and all(c["group"] == CONTRAST_GROUP for c in cases)
+    hus = [contrast_hu_of(s) for s in seeds]
+    assert all(CONTRAST_HU[0] <= h <= CONTRAST_HU[1] for h in hus) and len(set(hus)) == len(hus)
+    src = {"random": 2, "size": "tiny", "fluid_hu": 350.0}
+    ct, truth = _cached(src, str(tmp_path))
+    ct_w, truth_w = _cached({"random": 2, "size": "tiny"}, str(tmp_path))
+    assert sorted(p.name for p in tmp_path.glob("*.nrrd")) == ["random-2-tiny-fluid350.nrrd", "random-2-tiny.nrrd"]
+    assert truth["hu"]["fluid"] == 350.0 and truth_w["hu"]["fluid"] < 25.0
+    assert truth["fluid_level_lps_y"] == truth_w["fluid_level_lps_y"] and truth["markers"] == truth_w["markers"]
+    pool = ct.array > 250
+    assert np.count_nonzero(pool & (ct_w.array < 100)) > 1000      # the pool's voxels: water in one, contrast in the other
