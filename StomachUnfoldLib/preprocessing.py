@@ -959,7 +959,17 @@ def _water_beyond(ct: Volume, pts: np.ndarray, m: np.ndarray, max_hu: float) -> 
     e2 = np.cross(m, e1)
     w = float(np.min(ct.spacing))
     at = pts[:, None, :] + np.asarray(WATER_TEST_DEPTHS_MM, float)[None, :, None] * m[None, None, :]
-    hu = sum(ct.sample(at + off) for off in (0.0 * e1, w * e1, -w * e1, w * e2, -w * e2)) / 5.0
+    offs = (0.0 * e1, w * e1, -w * e1, w * e2, -w * e2)
+    # the samples' box only (a CT left on file is read there, never whole)
+    ijk = ct.lps_to_index(np.concatenate([(at + off).reshape(-1, 3) for off in offs]))
+    size = np.array(ct.size)
+    lo = np.clip(np.floor(ijk.min(0)).astype(int) - 2, 0, size)
+    hi = np.clip(np.ceil(ijk.max(0)).astype(int) + 3, lo, size)
+    if np.any(hi <= lo):
+        return 0.0
+    box = ct.crop(lo, hi)
+    box = box.with_array(np.asarray(box.array))
+    hu = sum(box.sample(at + off) for off in offs) / 5.0
     wet = np.count_nonzero((hu >= FLUID_MIN_HU) & (hu <= max_hu), axis=1)
     return float(np.mean(3 * wet >= 2 * len(WATER_TEST_DEPTHS_MM)))
 
