@@ -1,5 +1,6 @@
-"""The ``oblique``, ``prone`` and ``rolled`` parts of ``stomach-unfold bench``: each method on random stomachs
-resampled onto oblique voxel grids, as a prone patient's scans, and as a patient's rolled about the S axis.
+"""The ``oblique``, ``prone``, ``rolled`` and ``contrast`` parts of ``stomach-unfold bench``: each method on random
+stomachs resampled onto oblique voxel grids, as a prone patient's scans, as a patient's rolled about the S axis, and
+with positive oral contrast in their retained fluid.
 
 The family draws its volumes with axis-aligned, permuted or flipped direction matrices only. A CT reformatted along
 an oblique plane, a volume cropped with a turned region of interest in Slicer, or a scan with gantry tilt resampled
