@@ -194,7 +194,8 @@ def test_rolled_turns_the_frame_about_s_and_every_lps_point_with_it():
 def test_the_contrast_part_draws_each_pool_at_its_contrast_hu_and_caches_it_apart(tmp_path):
     """Part ``contrast``: only held-out stomachs with a pool, each drawn again with its fluid at a HU within
     CONTRAST_HU (the same anatomy, level and markers), cached under its own name beside the water's draw."""
-    from StomachUnfoldEval.bench import Case, _cached
+    from StomachUnfoldEval import bench
+    from StomachUnfoldEval.bench import Case
     from StomachUnfoldEval.oblique import CONTRAST_GROUP, CONTRAST_HU, contrast_cases, contrast_hu_of
     from StomachUnfoldEval.random_stomach import draw_parameters
 
@@ -206,8 +207,8 @@ def test_the_contrast_part_draws_each_pool_at_its_contrast_hu_and_caches_it_apar
     hus = [contrast_hu_of(s) for s in seeds]
     assert all(CONTRAST_HU[0] <= h <= CONTRAST_HU[1] for h in hus) and len(set(hus)) == len(hus)
     src = {"random": 2, "size": "tiny", "fluid_hu": 350.0}
-    ct, truth = _cached(src, str(tmp_path))
-    ct_w, truth_w = _cached({"random": 2, "size": "tiny"}, str(tmp_path))
+    ct, truth = bench._cached(src, str(tmp_path))
+    ct_w, truth_w = bench._cached({"random": 2, "size": "tiny"}, str(tmp_path))
     assert sorted(p.name for p in tmp_path.glob("*.nrrd")) == ["random-2-tiny-fluid350.nrrd", "random-2-tiny.nrrd"]
     assert truth["hu"]["fluid"] == 350.0 and truth_w["hu"]["fluid"] < 25.0
     assert truth["fluid_level_lps_y"] == truth_w["fluid_level_lps_y"] and truth["markers"] == truth_w["markers"]
