@@ -303,8 +303,8 @@ def test_water_on_another_side_than_the_back_joins_the_lumen(side):
 @pytest.mark.parametrize("geometry", ["identity", "y_on_k", "thick"])
 def test_a_dense_pool_under_a_level_joins_the_lumen_and_is_said(geometry):
     """Fluid with positive oral contrast (350 HU) under a flat level joins the lumen as water does, with the blur of
-    its edge against the wall at most two voxels beyond it (it had been left as wall: its surface drawn as mucosa, the wall
-    under it hidden), and the warning says it is dense; water or a flat boundary on tissue say nothing of the kind."""
+    its edge against the wall at most two voxels beyond it (it had been left as wall: its surface drawn as mucosa, the
+    wall under it hidden), and the warning says it is dense; water or a flat boundary on tissue say nothing of it."""
     ct, fluid_true, lumen_true = make_ct(geometry, "contrast")
     lumen, info = air_region(ct, CARDIA, PYLORUS)
     air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)

@@ -213,4 +213,4 @@ def test_the_contrast_part_draws_each_pool_at_its_contrast_hu_and_caches_it_apar
     assert truth["hu"]["fluid"] == 350.0 and truth_w["hu"]["fluid"] < 25.0
     assert truth["fluid_level_lps_y"] == truth_w["fluid_level_lps_y"] and truth["markers"] == truth_w["markers"]
     pool = ct.array > 250
-    assert np.count_nonzero(pool & (ct_w.array < 100)) > 1000      # the pool's voxels: water in one, contrast in the other
+    assert np.count_nonzero(pool & (ct_w.array < 100)) > 1000      # the pool: water in one draw, contrast in the other
