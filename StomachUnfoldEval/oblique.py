@@ -103,7 +103,7 @@ def _mirrored_truth(x, key: str = "", M: np.ndarray = FRONT_TO_BACK):
     LPS y)."""
     if isinstance(x, dict):
         mirror = bool(np.allclose(M, FRONT_TO_BACK))
-        return {k: (((-v if mirror else None) if v is not None else None) if k == "fluid_level_lps_y"
+        return {k: ((-v if mirror and v is not None else None) if k == "fluid_level_lps_y"
                     else _mirrored_truth(v, k, M)) for k, v in x.items()}
     if key.lower().endswith(("lps", "ras")):
         a = np.asarray(x, float)

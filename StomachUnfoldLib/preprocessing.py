@@ -606,7 +606,7 @@ class _DensePool:
     edge_hu: float
 
 
-def _dense_pool_depths(prof: np.ndarray, inside: np.ndarray, n_partial: int, pool: "_DensePool", rel2: np.ndarray,
+def _dense_pool_depths(prof: np.ndarray, inside: np.ndarray, n_partial: int, pool: _DensePool, rel2: np.ndarray,
                        grid: tuple) -> tuple[np.ndarray, np.ndarray]:
     """Voxels of a dense pool under each level voxel (rays' HU profiles ``prof``) and the voxels in its range.
 
@@ -968,7 +968,6 @@ def _water_beyond(ct: Volume, pts: np.ndarray, m: np.ndarray, max_hu: float) -> 
     if np.any(hi <= lo):
         return 0.0
     box = ct.crop(lo, hi)
-    box = box.with_array(np.asarray(box.array))
     hu = sum(box.sample(at + off) for off in offs) / 5.0
     wet = np.count_nonzero((hu >= FLUID_MIN_HU) & (hu <= max_hu), axis=1)
     return float(np.mean(3 * wet >= 2 * len(WATER_TEST_DEPTHS_MM)))
