@@ -622,6 +622,39 @@ def _dense_pool_depths(prof: np.ndarray, inside: np.ndarray, n_partial: int, poo
     return np.minimum(med, np.count_nonzero(inside, axis=1)), ok
 
 
+#: Contents under a flat level that read over the water range but under DENSE_POOL_HU (HU: food, mucus, blood) are
+#: told from the wall under an air boundary lying flat on it by their depth: on half the level or more, each ray's
+#: median HU over this many mm under the partial-volume band is over the water range, and none of its HU there falls
+#: below FLUID_MIN_HU (the fat behind a wall of 2-7 mm). They look like the wall, so the wall under them cannot be
+#: found: they are said (:func:`fluid_below_level`), not added to the lumen.
+SOFT_CONTENTS_DEPTH_MM = 6.0
+
+
+@dataclass
+class _SoftContents:
+    """A flat level with contents under it that read like soft tissue: the level's LPS y (mm, in the frame it was
+    found in) and the contents' median HU."""
+
+    level_y: float
+    hu: float
+
+
+def _soft_contents(prof: np.ndarray, inside: np.ndarray, n_partial: int, w: float, max_hu: float,
+                   level_y: float) -> _SoftContents | None:
+    """The soft contents under a level (rays' HU profiles ``prof``, ``w`` mm a sample), or None (see
+    SOFT_CONTENTS_DEPTH_MM)."""
+    n = max(2, int(np.ceil(SOFT_CONTENTS_DEPTH_MM / w)))
+    if prof.shape[1] < n_partial + n:
+        return None
+    win = prof[:, n_partial:n_partial + n]
+    med = np.median(win, axis=1)
+    soft = inside[:, n_partial:n_partial + n].all(axis=1) & (med > max_hu) & (med <= DENSE_POOL_HU)
+    soft &= win.min(axis=1) >= FLUID_MIN_HU
+    if float(np.mean(soft)) < 0.5:
+        return None
+    return _SoftContents(level_y, float(np.median(med[soft])))
+
+
 def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: float, min_level_mm2: float,
                    max_depth_mm: float):
     """The water under the air's flat level, its rays run down the grid axis closest to LPS +y (see
@@ -683,7 +716,8 @@ def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
         # each ray's largest HU in the window: a shallow pool's median would take in the wall under it
         hu_under = np.nanmax(np.where(inside[:, under], prof[:, under], np.nan), axis=1)
         if float(np.mean(np.nan_to_num(hu_under, nan=-1000.0) > DENSE_POOL_HU)) < 0.5:
-            return None
+            soft = _soft_contents(prof, inside, n_partial, w, max_hu, level_y)
+            return None if soft is None else (None, level_y, soft)
         pool_hu = float(np.nanmedian(hu_under))
         pool = _DensePool(level_y, pool_hu, min(0.5 * (pool_hu + DENSE_WALL_HU), DENSE_EDGE_MAX_HU))
         depth, ok_pool = _dense_pool_depths(prof, inside, n_partial, pool, rel2, grid)
@@ -777,8 +811,8 @@ def _fluid_upright(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
     air_up = ((_resampled(hu_sub, sub, up, True, -1024.0) < threshold_hu)
               & ndimage.binary_dilation(_resampled(air[box], sub, up, False, 0.0) > 0.5, np.ones((3, 3, 3), bool)))
     found = _fluid_on_grid(up, air_up, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
-    if found is None:
-        return None
+    if found is None or found[0] is None:          # nothing, or soft contents said but not taken
+        return found
     fluid_up, level_y, pool = found
     f_sub = (_resampled(fluid_up, up, sub, False, 0.0) > 0.5) & ~air[box]
     touching = ndimage.binary_dilation(f_sub) & ndimage.binary_dilation(air[box])
@@ -841,7 +875,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     none = np.zeros(air.shape, bool)
     if not air.any() or max_hu <= FLUID_MIN_HU:
         return none, info
-    dense = None
+    dense = soft = None
     for side, gravity, Q in _gravity_frames(ct, air, min_level_mm2, max_hu):
         # the CT's frame turned so that gravity lies along +y (the same voxels, LPS relabelled)
         ct_g = ct if Q is None else Volume(ct.array, ct.spacing, Q @ np.asarray(ct.origin, float),
@@ -849,6 +883,9 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
         found = (_fluid_upright if _tilt_deg(ct_g) > UPRIGHT_TILT_DEG else _fluid_on_grid)(
             ct_g, air, max_hu, threshold_hu, min_level_mm2, max_depth_mm)
         if found is None:
+            continue
+        if found[0] is None:                           # soft contents: said if no side has water or a dense pool
+            soft = soft or (side, gravity, found[2])
             continue
         if found[2] is not None:                       # a dense pool: taken only if no side has water
             dense = dense or (side, gravity, Q, found)
@@ -861,6 +898,14 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
         taken = _take_fluid(info, found, side, gravity, Q, air, ct, max_air_ratio)
         if taken is not None:
             return taken, info
+    if soft is not None:
+        side, gravity, contents = soft
+        ras, _ = _level_place(gravity, contents.level_y, side)
+        info["fluid_soft_hu"] = contents.hu
+        info["warnings"].append(f"a flat air-fluid level at {ras} has contents of about {contents.hu:.0f} HU under it "
+                                "(food, mucus or blood: they read like the wall), which were not added to the lumen: "
+                                "the level is shown as mucosa and the wall under them is hidden; pass a stomach label "
+                                "with --mask to unfold that wall")
     return none, info
 
 
