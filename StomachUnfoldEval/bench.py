@@ -20,8 +20,8 @@ from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
 from .memory import memory_markdown, memory_plot, memory_runs
-from .oblique import (CONTRAST_GROUP, PRONE_GROUP, ROLLED_GROUP, contrast_cases, front_to_back, oblique_cases,
-                      oblique_markdown, prone_cases, rolled, rolled_cases, turned_grid)
+from .oblique import (CONTENTS_GROUP, CONTRAST_GROUP, PRONE_GROUP, ROLLED_GROUP, contents_cases, contrast_cases,
+                      front_to_back, oblique_cases, oblique_markdown, prone_cases, rolled, rolled_cases, turned_grid)
 from .raster_phase import phase_cases, phase_markdown
 from .regional import area_scale_along, area_scale_summary
 
@@ -122,7 +122,8 @@ def _cached(source: dict, cache_dir: str | None):
 
     from .random_stomach import HYBRID_DRAWING, insert_into_ct, random_stomach
 
-    fluid = f"-fluid{float(source['fluid_hu']):g}" if source.get("fluid_hu") is not None else ""  # part ``contrast``
+    # parts ``contrast`` and ``contents``: the fluid drawn at another HU, cached under its own name
+    fluid = f"-fluid{float(source['fluid_hu']):g}" if source.get("fluid_hu") is not None else ""
     key = (f"random-{source['random']}-{source.get('size', 'small')}{fluid}" if "random" in source
            else f"hybrid-{source['hybrid']}-{os.path.basename(source['ct']).split('.')[0]}"
            + (f"-d{HYBRID_DRAWING}" if HYBRID_DRAWING != 1 else ""))
@@ -416,6 +417,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += rolled_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "contrast" in parts:
         cases += contrast_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
+    if "contents" in parts:
+        cases += contents_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "phase" in parts:
         cases += phase_cases(quick, data_dir, _real_cts(data_dir), _phantom_cache(None), Case)
     if "surfacebound" in parts:
@@ -1201,6 +1204,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     L += oblique_markdown(rows, "stomachs-held-out", PRONE_GROUP)
     L += oblique_markdown(rows, "stomachs-held-out", ROLLED_GROUP)
     L += oblique_markdown(rows, "stomachs-held-out", CONTRAST_GROUP)
+    L += oblique_markdown(rows, "stomachs-held-out", CONTENTS_GROUP)
     L += phase_markdown(rows)
     L += surface_bound_markdown(rows)
     L += memory_markdown(rows)

@@ -41,8 +41,13 @@ GROUP = "oblique"
 PRONE_GROUP = "prone"
 ROLLED_GROUP = "rolled"
 CONTRAST_GROUP = "contrast"
+CONTENTS_GROUP = "contents"
 #: The HU of a volume's fluid in part ``contrast`` (positive oral contrast; drawn uniformly between the two per seed).
 CONTRAST_HU = (300.0, 900.0)
+#: The HU of a volume's fluid in part ``contents`` (food, mucus or blood: it reads like the wall; drawn per seed).
+CONTENTS_HU = (30.0, 150.0)
+#: The warning that says such contents (StomachUnfoldLib.preprocessing.fluid_below_level), counted per method.
+CONTENTS_SAID = "has contents of about"
 #: How far each volume is rolled about the S axis (degrees, drawn uniformly between the two per seed, either way).
 ROLL_DEGREES = (5.0, 20.0)
 #: LPS mirrored front to back (y negated): a supine scene whose water then lies anteriorly, as a prone patient's.
@@ -51,8 +56,9 @@ FRONT_TO_BACK = np.diag([1.0, -1.0, 1.0])
 VISIBLE_DROP = 0.005
 
 __all__ = ["turned_grid", "grid_turn", "front_to_back", "rolled", "roll_of", "oblique_cases", "prone_cases",
-           "rolled_cases", "contrast_cases", "contrast_hu_of", "oblique_summary", "oblique_markdown", "OBLIQUE_DEGREES",
-           "OBLIQUE_METHODS", "ROLL_DEGREES", "CONTRAST_HU", "GROUP", "PRONE_GROUP", "ROLLED_GROUP", "CONTRAST_GROUP"]
+           "rolled_cases", "contrast_cases", "contrast_hu_of", "contents_cases", "contents_hu_of", "oblique_summary",
+           "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS", "ROLL_DEGREES", "CONTRAST_HU", "CONTENTS_HU", "GROUP",
+           "PRONE_GROUP", "ROLLED_GROUP", "CONTRAST_GROUP", "CONTENTS_GROUP"]
 
 
 def _rotation(axis, degrees: float) -> np.ndarray:
@@ -157,6 +163,25 @@ def contrast_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
             for m in OBLIQUE_METHODS for seed in seeds]
 
 
+def contents_hu_of(seed: int) -> float:
+    """The HU of seed's fluid in part ``contents`` (contents that read like the wall, within CONTENTS_HU)."""
+    return float(np.random.default_rng(9_100_037 + int(seed)).uniform(*CONTENTS_HU))
+
+
+def contents_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
+    """The ``contents`` part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed whose stomach has a pool,
+    drawn again with its fluid at :func:`contents_hu_of` HU (no method can find the wall under it: the part shows what
+    each does there, and whether it says so)."""
+    from .random_stomach import draw_parameters
+
+    seeds = [int(s) for s in seeds if draw_parameters(int(s), "small")["fluid"]]
+    seeds = seeds[:2] if quick else seeds
+    return [case(f"stomach-{seed}/{m}-contents", {"random": seed, "size": "small", "_cache": cache,
+                                                  "fluid_hu": round(contents_hu_of(seed), 1)}, {}, method=m,
+                 group=CONTENTS_GROUP)
+            for m in OBLIQUE_METHODS for seed in seeds]
+
+
 def front_to_back(ct: Volume, truth: dict) -> tuple[Volume, dict]:
     """The CT (HU) and its truth as a prone patient's scan: the same voxels with LPS y negated (FRONT_TO_BACK), so the
     water a supine drawing put on the posterior wall lies on the anterior one; every LPS point (mm) of the truth
@@ -193,7 +218,8 @@ def oblique_summary(rows: list[dict], aligned_group: str, group: str = GROUP) ->
     time median (s), and on the oblique grid the volumes whose visible mucosa falls by over VISIBLE_DROP or that see
     fewer markers than as drawn."""
     turned = [r for r in rows if r.get("group") == group]
-    label_turned = {PRONE_GROUP: "prone", ROLLED_GROUP: "rolled", CONTRAST_GROUP: "contrast"}.get(group, "oblique")
+    label_turned = {PRONE_GROUP: "prone", ROLLED_GROUP: "rolled", CONTRAST_GROUP: "contrast",
+                    CONTENTS_GROUP: "contents"}.get(group, "oblique")
     out = []
     for m in OBLIQUE_METHODS:
         mine = {_volume(r): r for r in turned if r["method"] == m}
@@ -224,6 +250,8 @@ def oblique_summary(rows: list[dict], aligned_group: str, group: str = GROUP) ->
                 row["fewer_markers"] = sorted(_volume(a) for a, b in both
                                               if "markers" in a["quality"] and "markers" in b["quality"]
                                               and a["quality"]["markers"]["seen"] < b["quality"]["markers"]["seen"])
+            if label == "contents":
+                row["said"] = sum(any(CONTENTS_SAID in w for w in r.get("warnings") or []) for r in ok)
             if label != "as drawn":
                 row["errors"] = sorted({str(r.get("error", "")).split(";")[0][:90] for r in rs.values()
                                         if not r.get("ok")})
@@ -237,7 +265,15 @@ def oblique_markdown(rows: list[dict], aligned_group: str, group: str = GROUP) -
     if not summ:
         return []
     lo, hi = OBLIQUE_DEGREES
-    if group == CONTRAST_GROUP:
+    if group == CONTENTS_GROUP:
+        clo, chi = CONTENTS_HU
+        head = [f"## Contents: the held-out random stomachs with a pool, its fluid drawn at {clo:g}-{chi:g} HU\n",
+                "Each volume whose stomach holds fluid drawn again with the fluid at a HU drawn per seed (food, mucus or "
+                "blood: it reads like the wall, so no method can find the wall under it); *as drawn*: the `stomachs` "
+                "part's rows on the same volumes (water). *said*: runs whose warnings say such contents and ask for a "
+                f"label. *lower*: volumes whose visible mucosa falls by over {100 * VISIBLE_DROP:g} point; *fewer "
+                "markers*: volumes that see fewer markers than with water.\n"]
+    elif group == CONTRAST_GROUP:
         clo, chi = CONTRAST_HU
         head = [f"## Contrast: the held-out random stomachs with a pool, its fluid drawn at {clo:g}-{chi:g} HU\n",
                 "Each volume whose stomach holds fluid drawn again with the fluid at a HU drawn per seed (positive oral "
@@ -284,6 +320,10 @@ def oblique_markdown(rows: list[dict], aligned_group: str, group: str = GROUP) -
                  f"{x['markers_seen']}/{x['markers_total']} | {f3(x['distortion_median'], '{:.4f}')} | "
                  f"{f3(x['seconds_median'], '{:.1f}')} | {lower or ('none' if 'visible_lower' in x else '')} | "
                  f"{fewer or ('none' if 'fewer_markers' in x else '')} |")
+    said = [f"{x['method']} {x['said']}/{x['runs'] - x['failed']}" for x in summ if "said" in x]
+    if said:
+        L.append("")
+        L.append("Said (the warning names the contents and asks for a label): " + ", ".join(said) + ".")
     errs = [(x["method"], e) for x in summ for e in x.get("errors", [])]
     if errs:
         L.append("")

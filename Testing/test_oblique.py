@@ -214,3 +214,30 @@ def test_the_contrast_part_draws_each_pool_at_its_contrast_hu_and_caches_it_apar
     assert truth["fluid_level_lps_y"] == truth_w["fluid_level_lps_y"] and truth["markers"] == truth_w["markers"]
     pool = ct.array > 250
     assert np.count_nonzero(pool & (ct_w.array < 100)) > 1000      # the pool: water in one draw, contrast in the other
+
+
+def test_the_contents_part_draws_each_pool_like_the_wall_and_its_table_counts_what_is_said(tmp_path):
+    """Part ``contents``: the held-out stomachs with a pool, each with its fluid at a HU within CONTENTS_HU (food, mucus,
+    blood), apart from the contrast part's HU; the part's summary counts the runs whose warnings say such contents."""
+    from StomachUnfoldEval.bench import Case
+    from StomachUnfoldEval.oblique import (CONTENTS_GROUP, CONTENTS_HU, CONTENTS_SAID, contents_cases, contents_hu_of,
+                                           contrast_cases, oblique_markdown, oblique_summary)
+
+    seeds = list(range(1000, 1030))
+    cases = contents_cases(False, seeds, str(tmp_path), Case)
+    assert [c["source"]["random"] for c in cases] == [c["source"]["random"] for c in
+                                                      contrast_cases(False, seeds, str(tmp_path), Case)]
+    assert all(c["group"] == CONTENTS_GROUP and c["name"].endswith("-contents") for c in cases)
+    hus = [c["source"]["fluid_hu"] for c in cases]
+    assert all(CONTENTS_HU[0] <= h <= CONTENTS_HU[1] for h in hus) and len(set(hus)) == len(cases) // 3
+    assert contents_hu_of(1000) != contents_hu_of(1001)
+
+    def row(seed, said):
+        q = {"visible_fraction": 0.99, "grade": "excellent", "markers": {"seen": 10, "total": 12}}
+        return {"name": f"stomach-{seed}/isometric-contents", "method": "isometric", "group": CONTENTS_GROUP,
+                "ok": True, "seconds": 3.0, "quality": q,
+                "warnings": [f"a flat air-fluid level at ... {CONTENTS_SAID} 60 HU under it"] if said else []}
+    rows = [row(1000, True), row(1002, True), row(1004, False)]
+    summ = [x for x in oblique_summary(rows, "stomachs-held-out", CONTENTS_GROUP) if x["grid"] == "contents"]
+    assert len(summ) == 1 and summ[0]["said"] == 2 and summ[0]["runs"] == 3
+    assert any("isometric 2/3" in line for line in oblique_markdown(rows, "stomachs-held-out", CONTENTS_GROUP))
