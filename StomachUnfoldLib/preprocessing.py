@@ -983,6 +983,9 @@ MAX_TILTED_LEVELS = 2
 #: Depths (mm) beyond a tilted plane at which :func:`_water_beyond` samples the CT: past the 3 mm of partial volume
 #: the rays also cross (:func:`fluid_below_level`), to about 9 mm.
 WATER_TEST_DEPTHS_MM = (3.5, 4.5, 5.5, 6.5, 7.5, 8.5)
+#: A tilted plane is tried also where a dense pool lies beyond it (positive oral contrast in a rolled patient): its
+#: rays then take the pool as under a side's level (:func:`_dense_pool_depths`).
+TILTED_DENSE_POOLS = True
 
 
 def _onto_y(g: np.ndarray) -> np.ndarray:
@@ -998,10 +1001,11 @@ def _onto_y(g: np.ndarray) -> np.ndarray:
 
 
 def _water_beyond(ct: Volume, pts: np.ndarray, m: np.ndarray, max_hu: float) -> float:
-    """Fraction of the boundary points ``pts`` (LPS mm) with water beyond them along ``m`` (unit, LPS): at least two
-    thirds of the CT's values at WATER_TEST_DEPTHS_MM in the water range [FLUID_MIN_HU, ``max_hu``] (HU; each the mean
-    of five trilinear samples, one voxel apart across ``m``, against the noise). A cheap test before the rays: a wall
-    with fat or an organ behind it crosses the range in a sample or two."""
+    """Fraction of the boundary points ``pts`` (LPS mm) with water or a dense pool beyond them along ``m`` (unit, LPS):
+    at least two thirds of the CT's values at WATER_TEST_DEPTHS_MM in the water range [FLUID_MIN_HU, ``max_hu``], or
+    (TILTED_DENSE_POOLS) over DENSE_POOL_HU (HU; each the mean of five trilinear samples, one voxel apart across ``m``,
+    against the noise). A cheap test before the rays: a wall with fat or an organ behind it crosses the water range in
+    a sample or two and stays under the dense one."""
     if len(pts) > 1500:                         # a fraction to about +-0.03: enough for a test
         pts = pts[np.linspace(0, len(pts) - 1, 1500).astype(np.int64)]
     e1 = np.cross(m, [0.0, 0.0, 1.0])
@@ -1019,8 +1023,10 @@ def _water_beyond(ct: Volume, pts: np.ndarray, m: np.ndarray, max_hu: float) -> 
         return 0.0
     box = ct.crop(lo, hi)
     hu = sum(box.sample(at + off) for off in offs) / 5.0
-    wet = np.count_nonzero((hu >= FLUID_MIN_HU) & (hu <= max_hu), axis=1)
-    return float(np.mean(3 * wet >= 2 * len(WATER_TEST_DEPTHS_MM)))
+    wet = 3 * np.count_nonzero((hu >= FLUID_MIN_HU) & (hu <= max_hu), axis=1) >= 2 * len(WATER_TEST_DEPTHS_MM)
+    if TILTED_DENSE_POOLS:
+        wet |= 3 * np.count_nonzero(hu > DENSE_POOL_HU, axis=1) >= 2 * len(WATER_TEST_DEPTHS_MM)
+    return float(np.mean(wet))
 
 
 def _tilted_levels(ct: Volume, air: np.ndarray, min_level_mm2: float, max_hu: float) -> list:

@@ -367,6 +367,26 @@ def test_water_under_a_tilted_level_of_a_rolled_patient_joins_the_lumen(degrees)
     assert len(said) == 1 and "a patient rolled in the scanner" in said[0]
 
 
+@pytest.mark.parametrize("degrees", [-14.0, 22.0])
+def test_a_dense_pool_under_a_tilted_level_of_a_rolled_patient_joins_the_lumen(degrees, monkeypatch):
+    """Positive oral contrast (350 HU) in a rolled patient: the tilted plane is tried where a dense pool lies beyond it,
+    and the pool joins the lumen as under a side's level (before, only water was looked for beyond a tilted plane: the
+    pool's surface was drawn as mucosa without a word)."""
+    t = np.radians(degrees)
+    g = np.array([np.sin(t), np.cos(t), 0.0])
+    ct, fluid_true, _ = make_ct("identity", "contrast", dependent=g)
+    lumen, info = air_region(ct, CARDIA, PYLORUS)
+    air, _ = air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)
+    assert info["fluid_voxels"] > 0 and 250.0 < info["fluid_dense_hu"] < 450.0
+    assert np.degrees(np.arccos(np.clip(np.dot(info["fluid_gravity_lps"], g), -1.0, 1.0))) < 3.0
+    found = lumen & ~air
+    assert np.count_nonzero(found & fluid_true) > 0.95 * np.count_nonzero(fluid_true) and dice(found, fluid_true) > 0.9
+    said = [m for m in info["warnings"] if "retained fluid (dense, median" in m]
+    assert len(said) == 1 and "a patient rolled in the scanner" in said[0]
+    monkeypatch.setattr(preprocessing, "TILTED_DENSE_POOLS", False)
+    assert air_region(ct, CARDIA, PYLORUS)[1]["fluid_voxels"] == 0
+
+
 @pytest.mark.parametrize("noise_hu", [25.0, 45.0])
 def test_a_tilted_flat_boundary_on_tissue_is_not_tried_as_a_level_and_water_under_one_is(noise_hu, monkeypatch):
     """A rolled patient's flat air boundary lying on tissue (50 HU) has no water beyond it: the cheap test refuses the
