@@ -153,13 +153,18 @@ def contrast_hu_of(seed: int) -> float:
 def contrast_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
     """The ``contrast`` part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed whose stomach has a pool,
     drawn again with its fluid at :func:`contrast_hu_of` HU."""
+    return _pool_cases(quick, seeds, cache, case, contrast_hu_of, CONTRAST_GROUP)
+
+
+def _pool_cases(quick: bool, seeds, cache: str, case, hu_of, group: str) -> list[dict]:
+    """Every OBLIQUE_METHODS x seed whose stomach has a pool, drawn again with its fluid at ``hu_of(seed)`` HU, in
+    ``group`` (also the name's suffix)."""
     from .random_stomach import draw_parameters
 
     seeds = [int(s) for s in seeds if draw_parameters(int(s), "small")["fluid"]]
     seeds = seeds[:2] if quick else seeds
-    return [case(f"stomach-{seed}/{m}-contrast", {"random": seed, "size": "small", "_cache": cache,
-                                                  "fluid_hu": round(contrast_hu_of(seed), 1)}, {}, method=m,
-                 group=CONTRAST_GROUP)
+    return [case(f"stomach-{seed}/{m}-{group}", {"random": seed, "size": "small", "_cache": cache,
+                                                 "fluid_hu": round(hu_of(seed), 1)}, {}, method=m, group=group)
             for m in OBLIQUE_METHODS for seed in seeds]
 
 
@@ -172,14 +177,7 @@ def contents_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
     """The ``contents`` part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed whose stomach has a pool,
     drawn again with its fluid at :func:`contents_hu_of` HU (no method can find the wall under it: the part shows what
     each does there, and whether it says so)."""
-    from .random_stomach import draw_parameters
-
-    seeds = [int(s) for s in seeds if draw_parameters(int(s), "small")["fluid"]]
-    seeds = seeds[:2] if quick else seeds
-    return [case(f"stomach-{seed}/{m}-contents", {"random": seed, "size": "small", "_cache": cache,
-                                                  "fluid_hu": round(contents_hu_of(seed), 1)}, {}, method=m,
-                 group=CONTENTS_GROUP)
-            for m in OBLIQUE_METHODS for seed in seeds]
+    return _pool_cases(quick, seeds, cache, case, contents_hu_of, CONTENTS_GROUP)
 
 
 def front_to_back(ct: Volume, truth: dict) -> tuple[Volume, dict]:
