@@ -963,8 +963,8 @@ def _level_place(gravity, level: float, side: str = "posterior") -> tuple[str, f
 def _gravity_frames(ct: Volume, air: np.ndarray, min_level_mm2: float, max_hu: float):
     """(side, gravity (unit LPS), rotation taking gravity onto +y, or None for +y itself) to look for the water in:
     each of DEPENDENT_SIDES; then, if none of them holds it, the flat parts of the air's boundary whose normal lies
-    within ROLL_MAX_DEG of a side's and that have water beyond them (:func:`_tilted_levels`: a patient rolled in the
-    scanner)."""
+    within ROLL_MAX_DEG of a side's and that have water or a dense pool beyond them (:func:`_tilted_levels`: a patient
+    rolled in the scanner)."""
     for side, gravity in DEPENDENT_SIDES.items():
         yield side, np.asarray(gravity, float), (None if side == "posterior" else _turn_to_posterior(gravity))
     for side, g in _tilted_levels(ct, air, min_level_mm2, max_hu):
@@ -1031,14 +1031,14 @@ def _water_beyond(ct: Volume, pts: np.ndarray, m: np.ndarray, max_hu: float) -> 
 
 def _tilted_levels(ct: Volume, air: np.ndarray, min_level_mm2: float, max_hu: float) -> list:
     """(side, unit normal LPS) of up to MAX_TILTED_LEVELS flat parts of the air's boundary tilted 1 to ROLL_MAX_DEG
-    degrees from a side's direction with water beyond them, the largest first.
+    degrees from a side's direction with water (or a dense pool) beyond them, the largest first.
 
     From each side turned about S by each of ROLL_STARTS_DEG, the boundary points whose outward normal (the smoothed
     mask's gradient, on every second voxel of a large box) lies within ROLL_MAX_DEG of it; the plane fitted (least
     squares) to those within 1.5 voxels of the densest slab across it, four times; kept where the densest two-voxel
     slab of that plane holds at least ``min_level_mm2`` (mm^2) of boundary and at least FLUID_MIN_WATER_FRACTION of
-    that slab's points have water beyond them (:func:`_water_beyond`); planes within 3 degrees of a larger one are
-    dropped."""
+    that slab's points have water or a dense pool beyond them (:func:`_water_beyond`); planes within 3 degrees of a
+    larger one are dropped."""
     lo, hi = bounding_box(air, (2, 2, 2))
     box = air[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
     step = 2 if box.size > 2_000_000 else 1
