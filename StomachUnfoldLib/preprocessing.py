@@ -872,7 +872,8 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
     right or tilted), ``fluid_dependent_side`` (a key of DEPENDENT_SIDES or None), ``fluid_gravity_lps`` (the unit
     normal of the level it was found under, LPS), ``fluid_level_text`` (the level's place, for messages),
     ``fluid_dense_hu`` (the median HU of a dense pool taken), ``fluid_soft_hu`` (the median HU of contents that read
-    like the wall, said and not taken) and ``warnings`` (list of str).
+    like the wall, said and not taken) with ``fluid_soft_level`` (their level: ``gravity_lps``, unit, and ``level_mm``,
+    the level's coordinate along it, LPS mm) and ``warnings`` (list of str).
     """
     air = np.asarray(air, bool)
     info = {"fluid_voxels": 0, "fluid_ml": 0.0, "fluid_level_lps_y": None, "fluid_dependent_side": None,
@@ -907,6 +908,8 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
         side, gravity, contents = soft
         ras, _ = _level_place(gravity, contents.level_y, side)
         info["fluid_soft_hu"] = contents.hu
+        # the level's plane (LPS mm along gravity): its face is no mucosa, and the grade counts it as wall not shown
+        info["fluid_soft_level"] = {"gravity_lps": [float(x) for x in gravity], "level_mm": float(contents.level_y)}
         info["warnings"].append(f"a flat air-fluid level at {ras} has contents of about {contents.hu:.0f} HU under it "
                                 "(food, mucus or blood: they read like the wall), which were not added to the lumen: "
                                 "the level is shown as mucosa and the wall under them is hidden; pass a stomach label "

@@ -15,7 +15,7 @@ from .preprocessing import lumen_edge
 from .view import first_hit
 
 __all__ = ["layer_runs", "overlap_fraction", "visible_points", "mucosa_points", "judge_mucosa_points", "onto_wall",
-           "surface_distortion", "inverted_fraction", "stretched_fraction", "quality_metrics", "GRADE_THRESHOLDS"]
+           "on_level", "surface_distortion", "inverted_fraction", "stretched_fraction", "quality_metrics", "GRADE_THRESHOLDS"]
 
 
 def layer_runs(unfolded: Volume, threshold_hu: float = -400.0, min_gap_mm: float = 1.5) -> np.ndarray:
@@ -233,8 +233,21 @@ def stretched_fraction(mesh, limit: float = 1.5) -> float:
     return float(np.mean(l1 > limit * l0))
 
 
+def on_level(points_lps: np.ndarray, level: dict | None, lumen_crop: Volume) -> np.ndarray:
+    """Which points (LPS mm) lie on the face of a level of contents that read like the wall (``level``: the front end's
+    ``fluid_soft_level``, its unit ``gravity_lps`` and ``level_mm`` along it, LPS mm): within one voxel of that plane
+    along gravity. That face is no mucosa: the wall under the contents is hidden behind it."""
+    pts = np.asarray(points_lps, float).reshape(-1, 3)
+    if not level:
+        return np.zeros(len(pts), bool)
+    g = np.asarray(level["gravity_lps"], float)
+    reach = float(np.abs(np.asarray(lumen_crop.direction, float).T @ g) @ np.asarray(lumen_crop.spacing, float))
+    return np.abs(pts @ g - float(level["level_mm"])) <= reach
+
+
 def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, centerline_lps,
-                    threshold_hu: float = -400.0, progress=None, folded=None, points_lps=None) -> dict:
+                    threshold_hu: float = -400.0, progress=None, folded=None, points_lps=None,
+                    not_shown=None) -> dict:
     """All automatic quality metrics and the grade of an unfolded Volume (HU), from any method's outputs.
 
     ``correspondence.to_unfolded`` maps CT LPS mm into the view; ``mesh`` is the method's Mesh; ``lumen_crop``
@@ -243,7 +256,9 @@ def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, cente
     DistortionMap's ``multiple``) marks pixels where more than one piece of the mucosa's surface maps: a fold-over
     of a surface map that the volume, resampled from one piece per pixel, cannot show as a second layer (for a
     surface method's triangle sheet; a volumetric model's folds show as layers). ``points_lps``: the mucosa points
-    (LPS mm) when already drawn, :func:`judge_mucosa_points` (else drawn here).
+    (LPS mm) when already drawn, :func:`judge_mucosa_points` (else drawn here). ``not_shown`` (bool per point):
+    points known not to be mucosa the view can show (the face of a level of contents that read like the wall,
+    :func:`on_level`), counted as hidden whatever the view shows there (``known_hidden_fraction``).
     """
     report = progress or (lambda fraction: None)
     k_hit, _ = first_hit(vol, threshold_hu)
@@ -256,7 +271,9 @@ def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, cente
         mapped[a:a + 1000] = correspondence.to_unfolded(pts[a:a + 1000])
         report(0.05 + 0.55 * min(1.0, (a + 1000) / max(len(pts), 1)))
     ok = np.all(np.isfinite(mapped), axis=1)
-    visible_fraction = float(visible_points(vol, mapped, k_hit).sum() / max(len(pts), 1))
+    shown = visible_points(vol, mapped, k_hit)
+    known_hidden = np.zeros(len(pts), bool) if not_shown is None else np.asarray(not_shown, bool).reshape(len(pts))
+    visible_fraction = float((shown & ~known_hidden).sum() / max(len(pts), 1))
     # overlapping: two layers on a ray; inverted cells of the model
     runs = layer_runs(vol, threshold_hu)
     two = runs > 1
@@ -302,6 +319,7 @@ def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, cente
     out = {
         "visible_fraction": visible_fraction,
         "mucosa_points": int(len(pts)), "mucosa_points_mapped": int(ok.sum()),
+        "known_hidden_fraction": float(known_hidden.mean()) if len(pts) else 0.0,
         "overlap_area_fraction": float(over[seen].mean()) if seen.any() else 0.0,
         "inverted_fraction": inverted_fraction(mesh),
         "broken_springs_fraction": stretched_fraction(mesh),

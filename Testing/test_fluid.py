@@ -430,3 +430,36 @@ def test_a_drawn_stomach_with_positive_contrast_shows_the_markers_under_it(monke
     assert len(said) == 1 and 250 < float(said[0].split("median ")[1].split(" HU")[0]) < 450
     seen, total = row["quality"]["markers"]["by_region"]["under_fluid"]
     assert total >= 2 and seen == total and row["quality"]["grade"] == "excellent"
+
+
+def test_a_drawn_stomach_with_contents_like_the_wall_is_not_graded_as_if_its_wall_were_shown(monkeypatch):
+    """Tiny random stomach 2 with its retained fluid drawn at 60 HU (food, mucus, blood): the contents are said, and the
+    grade counts the face of their level (no mucosa: the wall under it is hidden) as wall not shown, so the view is
+    not graded excellent as before; with water under the same level no point is counted so."""
+    from StomachUnfoldEval import bench
+    from StomachUnfoldEval.random_stomach import random_stomach
+
+    rows = {}
+    for hu in (60.0, 10.0):
+        monkeypatch.setattr(bench, "_cached", lambda src, cache, hu=hu: random_stomach(2, "tiny", fluid_hu=hu))
+        rows[hu] = bench.run_case(bench.Case("stomach-2/isometric-contents", {"random": 2, "size": "tiny"}, {},
+                                             method="isometric", group="contents"))
+        assert rows[hu]["ok"], rows[hu].get("error")
+    soft, water = rows[60.0]["quality"], rows[10.0]["quality"]
+    assert any("has contents of about" in w for w in rows[60.0]["warnings"])
+    assert 0.05 < soft["known_hidden_fraction"] < 0.4 and soft["grade"] != "excellent"
+    assert soft["visible_fraction"] <= 1.0 - soft["known_hidden_fraction"]
+    assert water["known_hidden_fraction"] == 0.0 and water["grade"] == "excellent"
+
+
+def test_on_level_marks_the_points_within_a_voxel_of_the_level_along_gravity():
+    """quality.on_level: points within one voxel (along gravity) of the level's plane, none without a level."""
+    from StomachUnfoldLib.quality import on_level
+
+    vol = Volume(np.zeros((4, 4, 4), bool), (1.0, 2.0, 3.0), (0.0, 0.0, 0.0), np.eye(3))
+    pts = np.array([[5.0, 10.0, 0.0], [5.0, 11.9, 0.0], [5.0, 12.5, 7.0], [-3.0, 8.1, 2.0]])
+    level = {"gravity_lps": [0.0, 1.0, 0.0], "level_mm": 10.0}
+    assert on_level(pts, level, vol).tolist() == [True, True, False, True]
+    assert not on_level(pts, None, vol).any()
+    tilted = {"gravity_lps": [0.6, 0.8, 0.0], "level_mm": 8.0}      # one voxel along it: 0.6 * 1 + 0.8 * 2 mm
+    assert on_level(np.array([[0.0, 10.0, 0.0], [0.0, 13.0, 0.0]]), tilted, vol).tolist() == [True, False]
