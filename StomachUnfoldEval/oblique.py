@@ -57,8 +57,8 @@ VISIBLE_DROP = 0.005
 
 __all__ = ["turned_grid", "grid_turn", "front_to_back", "rolled", "roll_of", "oblique_cases", "prone_cases",
            "rolled_cases", "contrast_cases", "contrast_hu_of", "contents_cases", "contents_hu_of", "oblique_summary",
-           "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS", "ROLL_DEGREES", "CONTRAST_HU", "CONTENTS_HU", "GROUP",
-           "PRONE_GROUP", "ROLLED_GROUP", "CONTRAST_GROUP", "CONTENTS_GROUP"]
+           "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS", "ROLL_DEGREES", "CONTRAST_HU", "CONTENTS_HU",
+           "GROUP", "PRONE_GROUP", "ROLLED_GROUP", "CONTRAST_GROUP", "CONTENTS_GROUP"]
 
 
 def _rotation(axis, degrees: float) -> np.ndarray:

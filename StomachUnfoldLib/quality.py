@@ -15,7 +15,8 @@ from .preprocessing import lumen_edge
 from .view import first_hit
 
 __all__ = ["layer_runs", "overlap_fraction", "visible_points", "mucosa_points", "judge_mucosa_points", "onto_wall",
-           "on_level", "surface_distortion", "inverted_fraction", "stretched_fraction", "quality_metrics", "GRADE_THRESHOLDS"]
+           "on_level", "surface_distortion", "inverted_fraction", "stretched_fraction", "quality_metrics",
+           "GRADE_THRESHOLDS"]
 
 
 def layer_runs(unfolded: Volume, threshold_hu: float = -400.0, min_gap_mm: float = 1.5) -> np.ndarray:
