@@ -251,7 +251,7 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
         prep.seconds["reading"] += scan_s
     if method.name in WALL_MODEL_METHODS:
         check_model_memory(prep)
-    from .quality import judge_mucosa_points, on_level, quality_metrics
+    from .quality import judge_mucosa_points, quality_metrics
 
     centerline_lps = np.asarray(prep.centerline.points_lps)
     # the grade's mucosa points depend only on the front end: drawn beside the method where a core is spare
@@ -266,12 +266,10 @@ def unfold(ct: Volume, cardia_lps, pylorus_lps, params: UnfoldParameters | None 
             with timed_stage(prog, "quality", seconds, *span["quality"]) as report:
                 dmap = result.distortion(progress=lambda f: report(0.2 * f))
                 folded = dmap.multiple if out.mesh.kind == "triangle" else None
-                pts = mucosa.result()
-                # the face of a level of contents that read like the wall is no mucosa: counted as wall not shown
-                hidden = on_level(pts, (prep.air_info or {}).get("fluid_soft_level"), prep.lumen_crop)
                 result.report.quality = quality_metrics(out.unfolded, out.correspondence, out.mesh, prep.lumen_crop,
                                                         centerline_lps, progress=lambda f: report(0.2 + 0.8 * f),
-                                                        folded=folded, points_lps=pts, not_shown=hidden)
+                                                        folded=folded, points_lps=mucosa.result(),
+                                                        soft_level=(prep.air_info or {}).get("fluid_soft_level"))
                 result.report.quality["distortion_map"] = dmap.summary()
     from .plausibility import gas_contact_fraction, hidden_fold_warnings, opening_warnings, plausibility_warnings
 

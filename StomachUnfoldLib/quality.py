@@ -248,7 +248,7 @@ def on_level(points_lps: np.ndarray, level: dict | None, lumen_crop: Volume) -> 
 
 def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, centerline_lps,
                     threshold_hu: float = -400.0, progress=None, folded=None, points_lps=None,
-                    not_shown=None) -> dict:
+                    soft_level: dict | None = None) -> dict:
     """All automatic quality metrics and the grade of an unfolded Volume (HU), from any method's outputs.
 
     ``correspondence.to_unfolded`` maps CT LPS mm into the view; ``mesh`` is the method's Mesh; ``lumen_crop``
@@ -257,9 +257,10 @@ def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, cente
     DistortionMap's ``multiple``) marks pixels where more than one piece of the mucosa's surface maps: a fold-over
     of a surface map that the volume, resampled from one piece per pixel, cannot show as a second layer (for a
     surface method's triangle sheet; a volumetric model's folds show as layers). ``points_lps``: the mucosa points
-    (LPS mm) when already drawn, :func:`judge_mucosa_points` (else drawn here). ``not_shown`` (bool per point):
-    points known not to be mucosa the view can show (the face of a level of contents that read like the wall,
-    :func:`on_level`), counted as hidden whatever the view shows there (``known_hidden_fraction``).
+    (LPS mm) when already drawn, :func:`judge_mucosa_points` (else drawn here). ``soft_level``: the front end's
+    ``fluid_soft_level`` (a level of contents that read like the wall): the points on its face (:func:`on_level`) are
+    no mucosa, and are counted as hidden whatever the view shows there (``known_hidden_fraction``): the wall under the
+    contents is hidden behind them.
     """
     report = progress or (lambda fraction: None)
     k_hit, _ = first_hit(vol, threshold_hu)
@@ -273,7 +274,7 @@ def quality_metrics(vol: Volume, correspondence, mesh, lumen_crop: Volume, cente
         report(0.05 + 0.55 * min(1.0, (a + 1000) / max(len(pts), 1)))
     ok = np.all(np.isfinite(mapped), axis=1)
     shown = visible_points(vol, mapped, k_hit)
-    known_hidden = np.zeros(len(pts), bool) if not_shown is None else np.asarray(not_shown, bool).reshape(len(pts))
+    known_hidden = on_level(pts, soft_level, lumen_crop)
     visible_fraction = float((shown & ~known_hidden).sum() / max(len(pts), 1))
     # overlapping: two layers on a ray; inverted cells of the model
     runs = layer_runs(vol, threshold_hu)
