@@ -598,10 +598,9 @@ DENSE_EDGE_MAX_HU = 140.0
 
 @dataclass
 class _DensePool:
-    """A flat level with dense contents under it: the level's LPS y (mm, in the frame it was found in), their median
-    HU, and their rays' edge (HU: the pool ends where the HU falls below it)."""
+    """The dense contents under a flat level: their median HU, and their rays' edge (HU: the pool ends where the HU
+    falls below it)."""
 
-    level_y: float
     hu: float
     edge_hu: float
 
@@ -632,19 +631,9 @@ def _dense_pool_depths(prof: np.ndarray, inside: np.ndarray, n_partial: int, poo
 SOFT_CONTENTS_DEPTH_MM = 6.0
 
 
-@dataclass
-class _SoftContents:
-    """A flat level with contents under it that read like soft tissue: the level's LPS y (mm, in the frame it was
-    found in) and the contents' median HU."""
-
-    level_y: float
-    hu: float
-
-
-def _soft_contents(prof: np.ndarray, inside: np.ndarray, n_partial: int, w: float, max_hu: float,
-                   level_y: float) -> _SoftContents | None:
-    """The soft contents under a level (rays' HU profiles ``prof``, ``w`` mm a sample), or None (see
-    SOFT_CONTENTS_DEPTH_MM)."""
+def _soft_contents(prof: np.ndarray, inside: np.ndarray, n_partial: int, w: float, max_hu: float) -> float | None:
+    """The median HU of contents that read like the wall under a level (rays' HU profiles ``prof``, ``w`` mm a
+    sample), or None where there are none (see SOFT_CONTENTS_DEPTH_MM)."""
     n = max(2, int(np.ceil(SOFT_CONTENTS_DEPTH_MM / w)))
     if prof.shape[1] < n_partial + n:
         return None
@@ -654,14 +643,15 @@ def _soft_contents(prof: np.ndarray, inside: np.ndarray, n_partial: int, w: floa
     soft &= win.min(axis=1) >= FLUID_MIN_HU
     if float(np.mean(soft)) < 0.5:
         return None
-    return _SoftContents(level_y, float(np.median(med[soft])))
+    return float(np.median(med[soft]))
 
 
 def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: float, min_level_mm2: float,
                    max_depth_mm: float):
     """The water under the air's flat level, its rays run down the grid axis closest to LPS +y (see
     :func:`fluid_below_level`): (fluid mask, level's LPS y mm, a _DensePool where the level has dense contents under
-    it, else None), or None (no level, or neither water nor a dense pool under it)."""
+    it, else None); (None, level's LPS y mm, the median HU of contents that read like the wall under it); or None (no
+    level, or none of these under it)."""
     shape = air.shape
     ji = air.any(axis=0)  # the air's box, from one projection (the whole-volume reductions cost 3x more)
     j_, i_ = np.flatnonzero(ji.any(axis=1)), np.flatnonzero(ji.any(axis=0))
@@ -718,10 +708,10 @@ def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
         # each ray's largest HU in the window: a shallow pool's median would take in the wall under it
         hu_under = np.nanmax(np.where(inside[:, under], prof[:, under], np.nan), axis=1)
         if float(np.mean(np.nan_to_num(hu_under, nan=-1000.0) > DENSE_POOL_HU)) < 0.5:
-            soft = _soft_contents(prof, inside, n_partial, w, max_hu, level_y)
-            return None if soft is None else (None, level_y, soft)
+            soft_hu = _soft_contents(prof, inside, n_partial, w, max_hu)
+            return None if soft_hu is None else (None, level_y, soft_hu)
         pool_hu = float(np.nanmedian(hu_under))
-        pool = _DensePool(level_y, pool_hu, min(0.5 * (pool_hu + DENSE_WALL_HU), DENSE_EDGE_MAX_HU))
+        pool = _DensePool(pool_hu, min(0.5 * (pool_hu + DENSE_WALL_HU), DENSE_EDGE_MAX_HU))
         depth, ok_pool = _dense_pool_depths(prof, inside, n_partial, pool, rel2, grid)
         take = (offs[None, :] <= depth[:, None]) & ok_pool
     else:
@@ -891,7 +881,7 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
         if found is None:
             continue
         if found[0] is None:                           # soft contents: said if no side has water or a dense pool
-            soft = soft or (side, gravity, found[2])
+            soft = soft or (side, gravity, found[1], found[2])
             continue
         if found[2] is not None:                       # a dense pool: taken only if no side has water
             dense = dense or (side, gravity, Q, found)
@@ -905,12 +895,12 @@ def fluid_below_level(ct: Volume, air: np.ndarray, max_hu: float = 25.0, thresho
         if taken is not None:
             return taken, info
     if soft is not None:
-        side, gravity, contents = soft
-        ras, _ = _level_place(gravity, contents.level_y, side)
-        info["fluid_soft_hu"] = contents.hu
+        side, gravity, level, soft_hu = soft
+        ras, _ = _level_place(gravity, level, side)
+        info["fluid_soft_hu"] = soft_hu
         # the level's plane (LPS mm along gravity): its face is no mucosa, and the grade counts it as wall not shown
-        info["fluid_soft_level"] = {"gravity_lps": [float(x) for x in gravity], "level_mm": float(contents.level_y)}
-        info["warnings"].append(f"a flat air-fluid level at {ras} has contents of about {contents.hu:.0f} HU under it "
+        info["fluid_soft_level"] = {"gravity_lps": [float(x) for x in gravity], "level_mm": float(level)}
+        info["warnings"].append(f"a flat air-fluid level at {ras} has contents of about {soft_hu:.0f} HU under it "
                                 "(food, mucus or blood: they read like the wall), which were not added to the lumen: "
                                 "the level is shown as mucosa and the wall under them is hidden; pass a stomach label "
                                 "with --mask to unfold that wall")
