@@ -123,7 +123,8 @@ def _cached(source: dict, cache_dir: str | None):
     from .random_stomach import HYBRID_DRAWING, insert_into_ct, random_stomach
 
     # parts ``contrast`` and ``contents``: the fluid drawn at another HU, cached under its own name
-    fluid = f"-fluid{float(source['fluid_hu']):g}" if source.get("fluid_hu") is not None else ""
+    extra = {"fluid_hu": float(source["fluid_hu"])} if source.get("fluid_hu") is not None else {}
+    fluid = f"-fluid{extra['fluid_hu']:g}" if extra else ""
     key = (f"random-{source['random']}-{source.get('size', 'small')}{fluid}" if "random" in source
            else f"hybrid-{source['hybrid']}-{os.path.basename(source['ct']).split('.')[0]}"
            + (f"-d{HYBRID_DRAWING}" if HYBRID_DRAWING != 1 else ""))
@@ -133,7 +134,6 @@ def _cached(source: dict, cache_dir: str | None):
             with open(json_path) as f:
                 return read_volume(vol_path), json.load(f)
     if "random" in source:
-        extra = {"fluid_hu": float(source["fluid_hu"])} if source.get("fluid_hu") is not None else {}
         ct, truth = random_stomach(int(source["random"]), source.get("size", "small"), **extra)
     else:
         ct, truth = insert_into_ct(read_volume(source["ct"]), int(source["hybrid"]))

@@ -1,6 +1,6 @@
-"""The ``oblique``, ``prone``, ``rolled`` and ``contrast`` parts of ``stomach-unfold bench``: each method on random
-stomachs resampled onto oblique voxel grids, as a prone patient's scans, as a patient's rolled about the S axis, and
-with positive oral contrast in their retained fluid.
+"""The ``oblique``, ``prone``, ``rolled``, ``contrast`` and ``contents`` parts of ``stomach-unfold bench``: each method
+on random stomachs resampled onto oblique voxel grids, as a prone patient's scans, as a patient's rolled about the S
+axis, with positive oral contrast in their retained fluid, and with contents there that read like the wall.
 
 The family draws its volumes with axis-aligned, permuted or flipped direction matrices only. A CT reformatted along
 an oblique plane, a volume cropped with a turned region of interest in Slicer, or a scan with gantry tilt resampled
@@ -22,7 +22,9 @@ patient's frame and gravity not, so the water's level is tilted that much from L
 
 The family's retained fluid is water (5-15 HU). Many abdominal CTs are taken after positive oral contrast, whose fluid
 reads 200-1000 HU. The ``contrast`` part draws each held-out stomach that has a pool again with its fluid at a HU drawn
-per seed (CONTRAST_HU, :func:`contrast_hu_of`): the same anatomy, markers and level.
+per seed (CONTRAST_HU, :func:`contrast_hu_of`): the same anatomy, markers and level. The ``contents`` part does the
+same at 30-150 HU (CONTENTS_HU: food, mucus or blood), where no method can find the wall under the contents; it counts
+the runs that say so (CONTENTS_SAID).
 """
 from __future__ import annotations
 
