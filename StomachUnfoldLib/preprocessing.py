@@ -1111,6 +1111,68 @@ def _turn_to_posterior(gravity) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+#: A point with no gas within the snapping distance may lie under retained water: a supine stomach's cardia, on the
+#: posterior wall of the fundus, goes under a deep pool. A ray from the point up through water alone (against a side's
+#: gravity, DEPENDENT_SIDES in turn) that leaves the water within SUBMERGED_MAX_MM with gas beside its exit joins the
+#: point to that gas; the water found under the gas's level must then hold the point (:func:`air_region`). (Water
+#: grown from the point instead, through voxels in the water range, ran into tissue of 30 HU under noise.)
+SUBMERGED_MAX_MM = 80.0
+#: The point may be clicked on the wall under the water: water this near (mm) is its water.
+SUBMERGED_LEAD_MM = 5.0
+#: Longest run (mm) of the ray's samples above the water range on its way up (noise left by the light smoothing; a
+#: wall is thicker).
+SUBMERGED_GAP_MM = 2.0
+#: How far (mm) beyond the ray's exit from the water (its first sample below the range) gas is looked for: the level's
+#: partial-volume band, and a thin cap of gas that the smoothing lifts above the gas threshold.
+SUBMERGED_EXIT_MM = 5.0
+
+
+def _smoothed_box(ct: Volume, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The CT's HU in the index box [lo, hi) (i, j, k), lightly smoothed (Gaussian, one voxel or 1.5 mm if less)."""
+    box = np.asarray(ct.array[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]], np.float32)
+    return ndimage.gaussian_filter(box, np.minimum(1.0, 1.5 / np.asarray(ct.spacing, float)[::-1]), mode="nearest")
+
+
+def _gas_above_water(ct: Volume, air, p: np.ndarray, max_hu: float) -> tuple | None:
+    """(gas voxel LPS mm, its distance from p mm) a ray from LPS point p (mm) up through water alone reaches, else None.
+
+    The rays run against each side's gravity (DEPENDENT_SIDES, in turn) in steps of half the smallest spacing, through
+    the CT lightly smoothed (:func:`_smoothed_box`) round each ray. A ray is taken when it reaches water
+    ([FLUID_MIN_HU, ``max_hu``] HU) within SUBMERGED_LEAD_MM, no run of its samples above the range is longer than SUBMERGED_GAP_MM (a wall) until it leaves the water below the range within SUBMERGED_MAX_MM,
+    and an ``air`` voxel (bool mask on ct's grid) lies within SUBMERGED_EXIT_MM of that exit (fat or bowel has none)."""
+    p = np.asarray(p, float).reshape(3)
+    step = 0.5 * float(np.min(ct.spacing))
+    t = np.arange(0.0, SUBMERGED_MAX_MM + step, step)
+    size = np.asarray(ct.size)
+    for gravity in DEPENDENT_SIDES.values():
+        pts = p[None] + t[:, None] * -np.asarray(gravity, float)[None]
+        ijk = ct.lps_to_index(pts)
+        inside = np.all((ijk > -0.5) & (ijk < size - 0.5), axis=1)
+        n = int(np.argmin(inside)) if not inside.all() else len(t)
+        if n < 2:
+            continue
+        ijk = ijk[:n]
+        lo = np.maximum(np.floor(ijk.min(0)).astype(int) - 3, 0)
+        hi = np.minimum(np.ceil(ijk.max(0)).astype(int) + 4, size)
+        vals = ndimage.map_coordinates(_smoothed_box(ct, lo, hi), (ijk - lo)[:, ::-1].T, order=1, mode="nearest")
+        water = np.flatnonzero((vals >= FLUID_MIN_HU) & (vals <= max_hu))
+        if not len(water) or t[water[0]] > SUBMERGED_LEAD_MM:
+            continue
+        w0 = int(water[0])
+        low = np.flatnonzero(vals[w0:] < FLUID_MIN_HU)
+        if not len(low):
+            continue
+        exit_ = w0 + int(low[0])
+        high = np.r_[0, (vals[w0:exit_] > max_hu).view(np.int8), 0]
+        runs = np.diff(np.flatnonzero(np.diff(high)).reshape(-1, 2), axis=1)
+        if len(runs) and float(runs.max()) * step > SUBMERGED_GAP_MM:
+            continue
+        gas = nearest_true(air, ct, pts[exit_], SUBMERGED_EXIT_MM)
+        if gas is not None:
+            return gas, float(np.linalg.norm(gas - p))
+    return None
+
+
 def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0, max_snap_mm: float = 20.0,
                progress=None, fluid_max_hu: float = 25.0) -> tuple[np.ndarray, dict]:
     """Stomach lumen (bool mask on ct's grid): air below threshold_hu (HU) 6-connected to the points' air, plus fluid.
@@ -1118,7 +1180,9 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     Each point (LPS mm) is snapped to the nearest air voxel within ``max_snap_mm``; the air component(s)
     reached are flood-filled with 6-connectivity. Lungs and colon gas are left out because they are not
     connected to the seeds. Retained fluid under a flat air-fluid level of that air (up to ``fluid_max_hu``
-    HU, :func:`fluid_below_level`) is added; without a level the mask is the air alone.
+    HU, :func:`fluid_below_level`) is added; without a level the mask is the air alone. A point with no air that near
+    but under water (a cardia under a deep pool) is joined to the gas a ray from it up through the water alone meets
+    (:func:`_gas_above_water`), and the water found must then hold it (within SUBMERGED_LEAD_MM); it is said.
 
     Parameters
     ----------
@@ -1147,8 +1211,9 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     PointError
         If a point lies outside the volume.
     AnatomyError
-        If no air lies near a point (pass a stomach mask), or the air reached touches the side faces of the
-        volume (outside air) or is larger than ``MAX_STOMACH_ML`` (lung, bowel).
+        If no air lies near a point nor above it through water (pass a stomach mask), or a point joined through water
+        lies in no water found, or the air reached touches the side faces of the volume (outside air) or is larger than
+        ``MAX_STOMACH_ML`` (lung, bowel).
     """
     pts = {"cardia": np.asarray(cardia_lps, float).reshape(3), "pylorus": np.asarray(pylorus_lps, float).reshape(3)}
     for name, p in pts.items():
@@ -1157,14 +1222,18 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     air = ct.array.below(threshold_hu) if isinstance(ct.array, FileArray) else BelowThreshold(ct.array, threshold_hu)
     if progress is not None:
         progress(0.1)
-    seeds = {}
+    seeds, joined = {}, {}
     for name, p in pts.items():
         s = nearest_true(air, ct, p, max_snap_mm)
+        if s is None and fluid_max_hu > FLUID_MIN_HU:  # under water? the gas above it, reached through the water alone
+            up = _gas_above_water(ct, air, p, fluid_max_hu)
+            if up is not None:
+                s, joined[name] = up
         if s is None:
             raise AnatomyError(f"the stomach has no gas near the {name} point (RAS {ras_text(p)} mm): no voxel "
                                f"below {threshold_hu:g} HU within {max_snap_mm:g} mm "
-                               f"({_nearest_distance_text(air, ct, p, max_snap_mm)}); pass a stomach label "
-                               "with --mask, or place the point in the gas-filled lumen")
+                               f"({_nearest_distance_text(air, ct, p, max_snap_mm)}) nor above it through water; "
+                               "pass a stomach label with --mask, or place the point in the gas-filled lumen")
         seeds[name] = s
     sides = _side_axes(ct)
     voxel_ml = float(np.prod(ct.spacing)) / 1000.0
@@ -1220,6 +1289,13 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
                            + ("a prone scan" if side == "anterior" else f"the patient on the {side} side") + ")")
                         + f", {info['fluid_ml']:.0f} mL, was added to the lumen; its contents are shown as air "
                         "and the wall is bounded by the lumen")
+    for name, depth in joined.items():
+        if nearest_true(region, ct, pts[name], SUBMERGED_LEAD_MM) is None:
+            raise AnatomyError(f"the {name} point (RAS {ras_text(pts[name])} mm) lies {depth:.0f} mm from gas with "
+                               "only water between, but no retained fluid under a flat level of that gas holds it; "
+                               "pass a stomach label with --mask, or place the point in the gas-filled lumen")
+        warnings.append(f"the {name} point lies under the retained fluid, {depth:.0f} mm from the gas it was joined "
+                        "to through the water above it")
     if progress is not None:
         progress(1.0)
     return region, info

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from StomachUnfoldLib.errors import AnatomyError
 from StomachUnfoldLib.geometry import Volume
 from StomachUnfoldLib import preprocessing
 from StomachUnfoldLib.preprocessing import air_region, fluid_below_level
@@ -463,3 +464,39 @@ def test_on_level_marks_the_points_within_a_voxel_of_the_level_along_gravity():
     assert not on_level(pts, None, vol).any()
     tilted = {"gravity_lps": [0.6, 0.8, 0.0], "level_mm": 8.0}      # one voxel along it: 0.6 * 1 + 0.8 * 2 mm
     assert on_level(np.array([[0.0, 10.0, 0.0], [0.0, 13.0, 0.0]]), tilted, vol).tolist() == [True, False]
+
+
+SUBMERGED = np.array([-10.0, 20.0, 0.0])   # deep in the water on the posterior wall: 22 mm under a level at y = -2 mm
+
+
+@pytest.mark.parametrize("geometry", REGULAR)
+def test_a_point_under_deep_water_is_joined_to_the_gas_above_it(geometry):
+    """A supine stomach's cardia under a deep pool has no gas within the snapping distance (20 mm): the gas straight
+    above it, through the water alone, is its seed, the pool under that gas's level holds it, and it is said."""
+    ct, fluid_true, lumen_true = make_ct(geometry, level_y=-2.0)
+    lumen, info = air_region(ct, SUBMERGED, PYLORUS)
+    assert dice(lumen, lumen_true) > 0.95 and dice(lumen & ~air_region(ct, CARDIA, PYLORUS, fluid_max_hu=-1000.0)[0],
+                                                  fluid_true) > 0.9
+    said = [m for m in info["warnings"] if m.startswith("the cardia point lies under the retained fluid")]
+    assert len(said) == 1 and abs(float(said[0].split(", ")[1].split(" mm")[0]) - 22.0) <= 2.0
+    seed = np.array(info["seeds_lps"][0])                      # the cardia's seed: a gas voxel at or above the level
+    assert ct.sample(seed[None], order=0)[0] < -500 and seed[1] <= -2.0 + 1e-6 and abs(seed[0] - SUBMERGED[0]) < 3.0
+    # a point in the air reads as before, whatever lies under the level
+    assert not any("under the retained fluid" in m for m in air_region(ct, CARDIA, PYLORUS)[1]["warnings"])
+
+
+@pytest.mark.parametrize("contents, match", [
+    ("tissue", r"no gas near the cardia point .* nor above it through water; pass a stomach label"),
+    ("leak", r"cardia point .* lies \d+ mm from gas with only water between, but no retained fluid .* holds it")])
+def test_a_point_under_tissue_or_under_leaking_water_is_refused(contents, match):
+    """Under a level on solid tissue no ray reaches gas through water: refused as before; water that leaks to the
+    volume's side is not taken, so a point in it, though under gas, lies in no lumen: refused, saying why."""
+    ct, _, _ = make_ct("identity", contents, level_y=-2.0)
+    with pytest.raises(AnatomyError, match=match):
+        air_region(ct, SUBMERGED, PYLORUS)
+
+
+def test_a_point_under_water_is_refused_when_water_is_not_looked_for():
+    ct, _, _ = make_ct("identity", level_y=-2.0)
+    with pytest.raises(AnatomyError, match="no gas near the cardia point"):
+        air_region(ct, SUBMERGED, PYLORUS, fluid_max_hu=-1000.0)
