@@ -20,8 +20,9 @@ from StomachUnfoldLib.errors import InputError, PointError, StomachUnfoldError
 
 from .click_error import click_error_cases, click_error_markdown, click_error_plot, moved_clicks
 from .memory import memory_markdown, memory_plot, memory_runs
-from .oblique import (CONTENTS_GROUP, CONTRAST_GROUP, PRONE_GROUP, ROLLED_GROUP, contents_cases, contrast_cases,
-                      front_to_back, oblique_cases, oblique_markdown, prone_cases, rolled, rolled_cases, turned_grid)
+from .oblique import (CONTENTS_GROUP, CONTRAST_GROUP, DEEP_GROUP, PRONE_GROUP, ROLLED_GROUP, contents_cases,
+                      contrast_cases, deep_cases, front_to_back, oblique_cases, oblique_markdown, prone_cases, rolled,
+                      rolled_cases, turned_grid)
 from .raster_phase import phase_cases, phase_markdown
 from .regional import area_scale_along, area_scale_summary
 
@@ -122,9 +123,15 @@ def _cached(source: dict, cache_dir: str | None):
 
     from .random_stomach import HYBRID_DRAWING, insert_into_ct, random_stomach
 
-    # parts ``contrast`` and ``contents``: the fluid drawn at another HU, cached under its own name
-    extra = {"fluid_hu": float(source["fluid_hu"])} if source.get("fluid_hu") is not None else {}
-    fluid = f"-fluid{extra['fluid_hu']:g}" if extra else ""
+    # parts ``contrast`` and ``contents``: the fluid drawn at another HU; ``deep``: a pool filling more of the stomach;
+    # each cached under its own name
+    extra, fluid = {}, ""
+    if source.get("fluid_hu") is not None:
+        extra["fluid_hu"] = float(source["fluid_hu"])
+        fluid += f"-fluid{extra['fluid_hu']:g}"
+    if source.get("fluid_depth") is not None:
+        extra.update(fluid=True, fluid_depth_fraction=float(source["fluid_depth"]))
+        fluid += f"-deep{extra['fluid_depth_fraction']:g}"
     key = (f"random-{source['random']}-{source.get('size', 'small')}{fluid}" if "random" in source
            else f"hybrid-{source['hybrid']}-{os.path.basename(source['ct']).split('.')[0]}"
            + (f"-d{HYBRID_DRAWING}" if HYBRID_DRAWING != 1 else ""))
@@ -419,6 +426,8 @@ def _cases(quick: bool, full_size: bool, data_dir: str | None, parts) -> list[di
         cases += contrast_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "contents" in parts:
         cases += contents_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
+    if "deep" in parts:
+        cases += deep_cases(quick, HELD_OUT_SEEDS, _phantom_cache(None), Case)
     if "phase" in parts:
         cases += phase_cases(quick, data_dir, _real_cts(data_dir), _phantom_cache(None), Case)
     if "surfacebound" in parts:
@@ -1205,6 +1214,7 @@ def _markdown(rows: list[dict], full: dict | None, meta: dict, made: list[str]) 
     L += oblique_markdown(rows, "stomachs-held-out", ROLLED_GROUP)
     L += oblique_markdown(rows, "stomachs-held-out", CONTRAST_GROUP)
     L += oblique_markdown(rows, "stomachs-held-out", CONTENTS_GROUP)
+    L += oblique_markdown(rows, "stomachs-held-out", DEEP_GROUP)
     L += phase_markdown(rows)
     L += surface_bound_markdown(rows)
     L += memory_markdown(rows)

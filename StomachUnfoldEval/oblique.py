@@ -1,6 +1,7 @@
-"""The ``oblique``, ``prone``, ``rolled``, ``contrast`` and ``contents`` parts of ``stomach-unfold bench``: each method
-on random stomachs resampled onto oblique voxel grids, as a prone patient's scans, as a patient's rolled about the S
-axis, with positive oral contrast in their retained fluid, and with contents there that read like the wall.
+"""The ``oblique``, ``prone``, ``rolled``, ``contrast``, ``contents`` and ``deep`` parts of ``stomach-unfold bench``: each
+method on random stomachs resampled onto oblique voxel grids, as a prone patient's scans, as a patient's rolled about the
+S axis, with positive oral contrast in their retained fluid, with contents there that read like the wall, and with a
+pool up to half the stomach's height.
 
 The family draws its volumes with axis-aligned, permuted or flipped direction matrices only. A CT reformatted along
 an oblique plane, a volume cropped with a turned region of interest in Slicer, or a scan with gantry tilt resampled
@@ -25,6 +26,12 @@ reads 200-1000 HU. The ``contrast`` part draws each held-out stomach that has a 
 per seed (CONTRAST_HU, :func:`contrast_hu_of`): the same anatomy, markers and level. The ``contents`` part does the
 same at 30-150 HU (CONTENTS_HU: food, mucus or blood), where no method can find the wall under the contents; it counts
 the runs that say so (CONTENTS_SAID).
+
+The family's pools fill 15-35 % of the stomach's height. After a drink of water (a water-distension protocol) or with
+gastric stasis the pool is deeper: the cardia, on the posterior wall of the fundus, and the pre-pyloric canal go under
+water, and the gas splits into pockets. The ``deep`` part draws every held-out stomach with a pool filling a fraction of
+its height drawn per seed (DEEP_FRACTION, :func:`deep_fraction_of`); it counts the runs whose warnings say a point was
+joined to its gas through the water (DEEP_SAID).
 """
 from __future__ import annotations
 
@@ -44,12 +51,18 @@ PRONE_GROUP = "prone"
 ROLLED_GROUP = "rolled"
 CONTRAST_GROUP = "contrast"
 CONTENTS_GROUP = "contents"
+DEEP_GROUP = "deep"
 #: The HU of a volume's fluid in part ``contrast`` (positive oral contrast; drawn uniformly between the two per seed).
 CONTRAST_HU = (300.0, 900.0)
 #: The HU of a volume's fluid in part ``contents`` (food, mucus or blood: it reads like the wall; drawn per seed).
 CONTENTS_HU = (30.0, 150.0)
 #: The warning that says such contents (StomachUnfoldLib.preprocessing.fluid_below_level), counted per method.
 CONTENTS_SAID = "has contents of about"
+#: The fraction of the stomach's height its pool fills in part ``deep`` (drawn uniformly between the two per seed).
+DEEP_FRACTION = (0.40, 0.55)
+#: The warning that says a point lies under the water and was joined to its gas through it (StomachUnfoldLib.
+#: preprocessing.air_region), counted per method in part ``deep``.
+DEEP_SAID = "lies under the retained fluid"
 #: How far each volume is rolled about the S axis (degrees, drawn uniformly between the two per seed, either way).
 ROLL_DEGREES = (5.0, 20.0)
 #: LPS mirrored front to back (y negated): a supine scene whose water then lies anteriorly, as a prone patient's.
@@ -58,9 +71,10 @@ FRONT_TO_BACK = np.diag([1.0, -1.0, 1.0])
 VISIBLE_DROP = 0.005
 
 __all__ = ["turned_grid", "grid_turn", "front_to_back", "rolled", "roll_of", "oblique_cases", "prone_cases",
-           "rolled_cases", "contrast_cases", "contrast_hu_of", "contents_cases", "contents_hu_of", "oblique_summary",
-           "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS", "ROLL_DEGREES", "CONTRAST_HU", "CONTENTS_HU",
-           "GROUP", "PRONE_GROUP", "ROLLED_GROUP", "CONTRAST_GROUP", "CONTENTS_GROUP"]
+           "rolled_cases", "contrast_cases", "contrast_hu_of", "contents_cases", "contents_hu_of", "deep_cases",
+           "deep_fraction_of", "oblique_summary", "oblique_markdown", "OBLIQUE_DEGREES", "OBLIQUE_METHODS",
+           "ROLL_DEGREES", "CONTRAST_HU", "CONTENTS_HU", "DEEP_FRACTION", "GROUP", "PRONE_GROUP", "ROLLED_GROUP",
+           "CONTRAST_GROUP", "CONTENTS_GROUP", "DEEP_GROUP"]
 
 
 def _rotation(axis, degrees: float) -> np.ndarray:
@@ -182,6 +196,20 @@ def contents_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
     return _pool_cases(quick, seeds, cache, case, contents_hu_of, CONTENTS_GROUP)
 
 
+def deep_fraction_of(seed: int) -> float:
+    """The fraction of seed's stomach height its pool fills in part ``deep`` (within DEEP_FRACTION)."""
+    return float(np.random.default_rng(9_200_041 + int(seed)).uniform(*DEEP_FRACTION))
+
+
+def deep_cases(quick: bool, seeds, cache: str, case) -> list[dict]:
+    """The ``deep`` part's cases (``case`` = bench.Case): every OBLIQUE_METHODS x seed, each stomach drawn with a pool
+    filling :func:`deep_fraction_of` its height (water)."""
+    seeds = list(seeds[:2]) if quick else list(seeds)
+    return [case(f"stomach-{seed}/{m}-{DEEP_GROUP}", {"random": int(seed), "size": "small", "_cache": cache,
+                                                      "fluid_depth": round(deep_fraction_of(seed), 3)}, {}, method=m,
+                  group=DEEP_GROUP) for m in OBLIQUE_METHODS for seed in seeds]
+
+
 def front_to_back(ct: Volume, truth: dict) -> tuple[Volume, dict]:
     """The CT (HU) and its truth as a prone patient's scan: the same voxels with LPS y negated (FRONT_TO_BACK), so the
     water a supine drawing put on the posterior wall lies on the anterior one; every LPS point (mm) of the truth
@@ -219,7 +247,7 @@ def oblique_summary(rows: list[dict], aligned_group: str, group: str = GROUP) ->
     fewer markers than as drawn."""
     turned = [r for r in rows if r.get("group") == group]
     label_turned = {PRONE_GROUP: "prone", ROLLED_GROUP: "rolled", CONTRAST_GROUP: "contrast",
-                    CONTENTS_GROUP: "contents"}.get(group, "oblique")
+                    CONTENTS_GROUP: "contents", DEEP_GROUP: "deep"}.get(group, "oblique")
     out = []
     for m in OBLIQUE_METHODS:
         mine = {_volume(r): r for r in turned if r["method"] == m}
@@ -250,8 +278,9 @@ def oblique_summary(rows: list[dict], aligned_group: str, group: str = GROUP) ->
                 row["fewer_markers"] = sorted(_volume(a) for a, b in both
                                               if "markers" in a["quality"] and "markers" in b["quality"]
                                               and a["quality"]["markers"]["seen"] < b["quality"]["markers"]["seen"])
-            if label == "contents":
-                row["said"] = sum(any(CONTENTS_SAID in w for w in r.get("warnings") or []) for r in ok)
+            if label in ("contents", "deep"):
+                said = CONTENTS_SAID if label == "contents" else DEEP_SAID
+                row["said"] = sum(any(said in w for w in r.get("warnings") or []) for r in ok)
             if label != "as drawn":
                 row["errors"] = sorted({str(r.get("error", "")).split(";")[0][:90] for r in rs.values()
                                         if not r.get("ok")})
@@ -265,7 +294,16 @@ def oblique_markdown(rows: list[dict], aligned_group: str, group: str = GROUP) -
     if not summ:
         return []
     lo, hi = OBLIQUE_DEGREES
-    if group == CONTENTS_GROUP:
+    if group == DEEP_GROUP:
+        dlo, dhi = DEEP_FRACTION
+        head = [f"## Deep pools: the held-out random stomachs with water filling {100 * dlo:g}-{100 * dhi:g} % of their "
+                "height\n",
+                "Each volume drawn again with a pool of water filling a fraction of the stomach's height drawn per seed "
+                "(the family's fill 15-35 %): the cardia and the pre-pyloric canal may lie under it and the gas split "
+                "into pockets; *as drawn*: the `stomachs` part's rows on the same volumes. *said*: runs whose warnings say "
+                f"a point was joined to its gas through the water. *lower*: volumes whose visible mucosa falls by over "
+                f"{100 * VISIBLE_DROP:g} point; *fewer markers*: volumes that see fewer markers than as drawn.\n"]
+    elif group == CONTENTS_GROUP:
         clo, chi = CONTENTS_HU
         head = [f"## Contents: the held-out random stomachs with a pool, its fluid drawn at {clo:g}-{chi:g} HU\n",
                 "Each volume whose stomach holds fluid drawn again with the fluid at a HU drawn per seed (food, mucus or "
@@ -323,7 +361,8 @@ def oblique_markdown(rows: list[dict], aligned_group: str, group: str = GROUP) -
     said = [f"{x['method']} {x['said']}/{x['runs'] - x['failed']}" for x in summ if "said" in x]
     if said:
         L.append("")
-        L.append("Said (the warning names the contents and asks for a label): " + ", ".join(said) + ".")
+        L.append(("Said (a point under the water, joined to its gas through it): " if group == DEEP_GROUP else
+                  "Said (the warning names the contents and asks for a label): ") + ", ".join(said) + ".")
     errs = [(x["method"], e) for x in summ for e in x.get("errors", [])]
     if errs:
         L.append("")

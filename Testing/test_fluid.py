@@ -3,6 +3,8 @@
 A synthetic stomach (an ellipsoidal lumen, a 5 mm wall at 50 HU, fat around) lies in a CT of several direction
 matrices; below a flat level (LPS y = const) its lumen holds water (10 HU), with scanner blur and noise.
 """
+import re
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -500,3 +502,37 @@ def test_a_point_under_water_is_refused_when_water_is_not_looked_for():
     ct, _, _ = make_ct("identity", level_y=-2.0)
     with pytest.raises(AnatomyError, match="no gas near the cardia point"):
         air_region(ct, SUBMERGED, PYLORUS, fluid_max_hu=-1000.0)
+
+
+def test_a_point_under_water_with_a_bubble_beyond_the_wall_joins_the_gas_above_it_not_the_bubble():
+    """A point under a deep pool whose nearest gas is a bubble outside the stomach (0.1 mL behind the wall: the
+    oesophagus's or the duodenum's) is joined to the gas above it through the water, and the bubble is named; the
+    same point with no water looked for snaps to the bubble, as before."""
+    ct, _, lumen_true = make_ct("identity", level_y=-2.0)
+    centre = SUBMERGED + np.array([0.0, 13.0, 0.0])          # in the fat 6 mm behind the 5 mm wall
+    k, j, i = np.nonzero(np.ones(ct.array.shape, bool))
+    P = ct.voxel_lps(np.ones(ct.array.shape, bool))
+    arr = ct.array.copy()
+    arr[k, j, i] = np.where(np.linalg.norm(P - centre, axis=1) < 3.0, -1000, arr[k, j, i])
+    ct = ct.with_array(arr)
+    lumen, info = air_region(ct, SUBMERGED, PYLORUS)
+    assert dice(lumen, lumen_true) > 0.95 and not lumen[preprocessing._voxel(ct, centre)]
+    said = [m for m in info["warnings"] if m.startswith("the cardia point lies under the retained fluid")]
+    assert len(said) == 1 and re.search(r"not to the bubble of 0\.1\d mL 1\d mm away$", said[0])
+    air, info_air = air_region(ct, SUBMERGED, PYLORUS, fluid_max_hu=-1000.0)
+    assert air[preprocessing._voxel(ct, centre)] and info_air["n_components"] == 2
+
+
+def test_a_deep_pool_under_a_thin_cap_of_gas_joins_the_lumen():
+    """Water filling two thirds of the stomach's height under a cap of gas is about three times the gas's volume: taken
+    (MAX_WATER_TO_AIR), where at twice the gas (the limit until 2026-12-07) it was refused as a leak."""
+    ct, fluid_true, lumen_true = make_ct("identity", level_y=-8.0)
+    pts = (np.array([-30.0, -14.0, 0.0]), np.array([30.0, -14.0, 0.0]))
+    lumen, info = air_region(ct, *pts)
+    air, _ = air_region(ct, *pts, fluid_max_hu=-1000.0)
+    assert 2.0 < np.count_nonzero(lumen & ~air) / np.count_nonzero(air) < preprocessing.MAX_WATER_TO_AIR
+    # the rays run down from the level's footprint: the water under the ellipsoid's overhang, wider below the level
+    # than at it, is not reached (a limit of the finder, small on the drawn stomachs' deep pools: 2-7 mL)
+    assert dice(lumen & ~air, fluid_true) > 0.85 and dice(lumen, lumen_true) > 0.9
+    refused, info2 = fluid_below_level(ct, air, max_air_ratio=2.0)
+    assert not refused.any() and any("times the air volume (over 2)" in m for m in info2["warnings"])

@@ -241,3 +241,36 @@ def test_the_contents_part_draws_each_pool_like_the_wall_and_its_table_counts_wh
     summ = [x for x in oblique_summary(rows, "stomachs-held-out", CONTENTS_GROUP) if x["grid"] == "contents"]
     assert len(summ) == 1 and summ[0]["said"] == 2 and summ[0]["runs"] == 3
     assert any("isometric 2/3" in line for line in oblique_markdown(rows, "stomachs-held-out", CONTENTS_GROUP))
+
+
+def test_the_deep_part_draws_each_stomach_with_a_deeper_pool_cached_apart_and_counts_what_is_said(tmp_path):
+    """Part ``deep``: every held-out stomach drawn with a pool filling a fraction of its height within DEEP_FRACTION
+    (above the family's 15-35 %), cached under its own name; the part's summary counts the runs that say a point was
+    joined to its gas through the water."""
+    from StomachUnfoldEval import bench
+    from StomachUnfoldEval.bench import Case
+    from StomachUnfoldEval.oblique import (DEEP_FRACTION, DEEP_GROUP, DEEP_SAID, deep_cases, deep_fraction_of,
+                                           oblique_markdown, oblique_summary)
+
+    seeds = list(range(1000, 1030))
+    cases = deep_cases(False, seeds, str(tmp_path), Case)
+    assert len(cases) == 3 * len(seeds) and all(c["group"] == DEEP_GROUP and c["name"].endswith("-deep") for c in cases)
+    fr = [deep_fraction_of(s) for s in seeds]
+    assert all(DEEP_FRACTION[0] <= f <= DEEP_FRACTION[1] for f in fr) and len(set(fr)) == len(fr)
+    ct, truth = bench._cached({"random": 2, "size": "tiny", "fluid_depth": 0.5}, str(tmp_path))
+    ct_w, truth_w = bench._cached({"random": 2, "size": "tiny"}, str(tmp_path))
+    assert sorted(p.name for p in tmp_path.glob("*.nrrd")) == ["random-2-tiny-deep0.5.nrrd", "random-2-tiny.nrrd"]
+    assert truth["fluid_level_lps_y"] < truth_w["fluid_level_lps_y"]        # a higher level (LPS y is posterior)
+    assert np.count_nonzero(np.abs(ct.array.astype(int) - 10) < 30) > np.count_nonzero(np.abs(ct_w.array.astype(int)
+                                                                                               - 10) < 30)
+
+    def row(seed, said, ok=True):
+        q = {"visible_fraction": 0.99, "grade": "excellent", "markers": {"seen": 10, "total": 12}}
+        return {"name": f"stomach-{seed}/isometric-deep", "method": "isometric", "group": DEEP_GROUP, "ok": ok,
+                "seconds": 3.0, "quality": q if ok else None, "error": None if ok else "AnatomyError: not connected",
+                "warnings": [f"the cardia point {DEEP_SAID}, 22 mm from the gas"] if said else []}
+    rows = [row(1000, True), row(1002, False), row(1004, False, ok=False)]
+    summ = [x for x in oblique_summary(rows, "stomachs-held-out", DEEP_GROUP) if x["grid"] == "deep"]
+    assert len(summ) == 1 and summ[0]["said"] == 1 and summ[0]["failed"] == 1
+    md = "\n".join(oblique_markdown(rows, "stomachs-held-out", DEEP_GROUP))
+    assert "## Deep pools" in md and "isometric 1/2" in md and "AnatomyError: not connected" in md
