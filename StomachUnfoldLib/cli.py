@@ -530,8 +530,8 @@ BENCH_PARTS = ("shapes", "kappa", "sweep", "stability", "resolution", "peers", "
                "oblique", "prone", "rolled", "contrast", "contents", "deep")
 #: The parts a plain ``bench`` runs: all but the whole-mucosa references of the nine later held-out sets, the
 #: clicks moved off their places and the judge's noise under a moved raster and depth samples (about 100 min here,
-#: sizes 6 of them, hybrids-many 10, oblique 3, prone 3, rolled 3, contrast 2, contents 2, deep 3; surfacebound-fresh about 85
-#: min more, clicks 16, phase about 18).
+#: sizes 6 of them, hybrids-many 10, oblique 3, prone 3, rolled 3, contrast 2, contents 2, deep 3; surfacebound-fresh
+#: about 85 min more, clicks 16, phase about 18).
 BENCH_DEFAULT_PARTS = tuple(p for p in BENCH_PARTS if p not in ("surfacebound-fresh", "clicks", "phase"))
 
 

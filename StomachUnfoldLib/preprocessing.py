@@ -1150,8 +1150,8 @@ def _gas_above_water(ct: Volume, air, p: np.ndarray, max_hu: float) -> tuple | N
 
     The rays run against each side's gravity (DEPENDENT_SIDES, in turn) in steps of half the smallest spacing, through
     the CT lightly smoothed (:func:`_smoothed_box`) round each ray. A ray is taken when it reaches water
-    ([FLUID_MIN_HU, ``max_hu``] HU) within SUBMERGED_LEAD_MM, no run of its samples above the range is longer than SUBMERGED_GAP_MM (a wall) until it leaves the water below the range within SUBMERGED_MAX_MM,
-    and an ``air`` voxel (bool mask on ct's grid) lies within SUBMERGED_EXIT_MM of that exit (fat or bowel has none)."""
+    ([FLUID_MIN_HU, ``max_hu``] HU) within SUBMERGED_LEAD_MM, no run of its samples above the range is longer than
+    SUBMERGED_GAP_MM (a wall) until it leaves the water below the range within SUBMERGED_MAX_MM, and an ``air`` voxel (bool mask on ct's grid) lies within SUBMERGED_EXIT_MM of that exit (fat or bowel has none)."""
     p = np.asarray(p, float).reshape(3)
     step = 0.5 * float(np.min(ct.spacing))
     t = np.arange(0.0, SUBMERGED_MAX_MM + step, step)
@@ -1183,6 +1183,38 @@ def _gas_above_water(ct: Volume, air, p: np.ndarray, max_hu: float) -> tuple | N
         if gas is not None:
             return gas, float(np.linalg.norm(gas - p))
     return None
+
+
+def _seeds(ct: Volume, air, pts: dict, threshold_hu: float, max_snap_mm: float, max_hu: float):
+    """Each point's air seed (LPS mm), its pocket (bool on ct's grid, flooded once per pocket) and the points joined to
+    their gas through water: (seeds, pockets, {name: (depth mm, None or the bubble passed over: (mL, mm away))}).
+
+    A point's seed is its nearest air voxel within ``max_snap_mm``; with none, or with one in a pocket under BUBBLE_ML,
+    the gas a ray from it up through water alone meets (:func:`_gas_above_water`, water up to ``max_hu`` HU) when there
+    is such a ray (to other gas than the bubble). Raises AnatomyError naming the point when it has no seed."""
+    voxel_ml = float(np.prod(ct.spacing)) / 1000.0
+    seeds, pockets, joined = {}, {}, {}
+    for name, p in pts.items():
+        s = nearest_true(air, ct, p, max_snap_mm)
+        if s is not None:  # its pocket (flooded once: the other point's, when it lies in it)
+            kji = _voxel(ct, s)
+            pockets[name] = next((c for c in pockets.values() if c[kji]), None)
+            if pockets[name] is None:
+                pockets[name] = flood_fill(air, kji)
+        bubble = s is not None and np.count_nonzero(pockets[name]) * voxel_ml < BUBBLE_ML
+        if (s is None or bubble) and max_hu > FLUID_MIN_HU:  # under water? the gas above it, through the water
+            up = _gas_above_water(ct, air, p, max_hu)
+            if up is not None and (s is None or not pockets[name][_voxel(ct, up[0])]):
+                passed = None if s is None else (np.count_nonzero(pockets.pop(name)) * voxel_ml,
+                                                 float(np.linalg.norm(s - p)))
+                s, joined[name] = up[0], (up[1], passed)
+        if s is None:
+            raise AnatomyError(f"the stomach has no gas near the {name} point (RAS {ras_text(p)} mm): no voxel "
+                               f"below {threshold_hu:g} HU within {max_snap_mm:g} mm "
+                               f"({_nearest_distance_text(air, ct, p, max_snap_mm)}) nor above it through water; "
+                               "pass a stomach label with --mask, or place the point in the gas-filled lumen")
+        seeds[name] = s
+    return seeds, pockets, joined
 
 
 def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0, max_snap_mm: float = 20.0,
@@ -1235,27 +1267,7 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     if progress is not None:
         progress(0.1)
     voxel_ml = float(np.prod(ct.spacing)) / 1000.0
-    seeds, joined, pockets, bubbles = {}, {}, {}, {}
-    for name, p in pts.items():
-        s = nearest_true(air, ct, p, max_snap_mm)
-        if s is not None:  # its pocket (flooded once: the other point's, when it lies in it)
-            kji = _voxel(ct, s)
-            pockets[name] = next((c for c in pockets.values() if c[kji]), None)
-            if pockets[name] is None:
-                pockets[name] = flood_fill(air, kji)
-        bubble = s is not None and np.count_nonzero(pockets[name]) * voxel_ml < BUBBLE_ML
-        if (s is None or bubble) and fluid_max_hu > FLUID_MIN_HU:  # under water? the gas above it, through the water
-            up = _gas_above_water(ct, air, p, fluid_max_hu)
-            if up is not None and (s is None or not pockets[name][_voxel(ct, up[0])]):
-                if s is not None:
-                    bubbles[name] = (np.count_nonzero(pockets.pop(name)) * voxel_ml, float(np.linalg.norm(s - p)))
-                s, joined[name] = up
-        if s is None:
-            raise AnatomyError(f"the stomach has no gas near the {name} point (RAS {ras_text(p)} mm): no voxel "
-                               f"below {threshold_hu:g} HU within {max_snap_mm:g} mm "
-                               f"({_nearest_distance_text(air, ct, p, max_snap_mm)}) nor above it through water; "
-                               "pass a stomach label with --mask, or place the point in the gas-filled lumen")
-        seeds[name] = s
+    seeds, pockets, joined = _seeds(ct, air, pts, threshold_hu, max_snap_mm, fluid_max_hu)
     sides = _side_axes(ct)
     region = None
     n_comp = 0
@@ -1309,15 +1321,15 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
                            + ("a prone scan" if side == "anterior" else f"the patient on the {side} side") + ")")
                         + f", {info['fluid_ml']:.0f} mL, was added to the lumen; its contents are shown as air "
                         "and the wall is bounded by the lumen")
-    for name, depth in joined.items():
+    for name, (depth, bubble) in joined.items():
         if nearest_true(region, ct, pts[name], SUBMERGED_LEAD_MM) is None:
             raise AnatomyError(f"the {name} point (RAS {ras_text(pts[name])} mm) lies {depth:.0f} mm from gas with "
                                "only water between, but no retained fluid under a flat level of that gas holds it; "
                                "pass a stomach label with --mask, or place the point in the gas-filled lumen")
         warnings.append(f"the {name} point lies under the retained fluid, {depth:.0f} mm from the gas it was joined "
-                        "to through the water above it" + ("" if name not in bubbles else
+                        "to through the water above it" + ("" if bubble is None else
                                                            ", not to the bubble of {:.2f} mL {:.0f} mm away".format(
-                                                               *bubbles[name])))
+                                                               *bubble)))
     if progress is not None:
         progress(1.0)
     return region, info
