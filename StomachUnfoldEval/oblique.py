@@ -1,7 +1,7 @@
-"""The ``oblique``, ``prone``, ``rolled``, ``contrast``, ``contents`` and ``deep`` parts of ``stomach-unfold bench``: each
-method on random stomachs resampled onto oblique voxel grids, as a prone patient's scans, as a patient's rolled about the
-S axis, with positive oral contrast in their retained fluid, with contents there that read like the wall, and with a
-pool up to half the stomach's height.
+"""The ``oblique``, ``prone``, ``rolled``, ``contrast``, ``contents`` and ``deep`` parts of ``stomach-unfold bench``:
+each method on random stomachs resampled onto oblique voxel grids, as a prone patient's scans, as a patient's rolled
+about the S axis, with positive oral contrast in their retained fluid, with contents there that read like the wall, and
+with a pool up to half the stomach's height.
 
 The family draws its volumes with axis-aligned, permuted or flipped direction matrices only. A CT reformatted along
 an oblique plane, a volume cropped with a turned region of interest in Slicer, or a scan with gantry tilt resampled
@@ -296,21 +296,22 @@ def oblique_markdown(rows: list[dict], aligned_group: str, group: str = GROUP) -
     lo, hi = OBLIQUE_DEGREES
     if group == DEEP_GROUP:
         dlo, dhi = DEEP_FRACTION
-        head = [f"## Deep pools: the held-out random stomachs with water filling {100 * dlo:g}-{100 * dhi:g} % of their "
-                "height\n",
-                "Each volume drawn again with a pool of water filling a fraction of the stomach's height drawn per seed "
-                "(the family's fill 15-35 %): the cardia and the pre-pyloric canal may lie under it and the gas split "
-                "into pockets; *as drawn*: the `stomachs` part's rows on the same volumes. *said*: runs whose warnings say "
-                f"a point was joined to its gas through the water. *lower*: volumes whose visible mucosa falls by over "
-                f"{100 * VISIBLE_DROP:g} point; *fewer markers*: volumes that see fewer markers than as drawn.\n"]
+        head = [f"## Deep pools: the held-out random stomachs with water filling {100 * dlo:g}-{100 * dhi:g} % of "
+                "their height\n",
+                "Each volume drawn again with a pool of water filling a fraction of the stomach's height drawn per "
+                "seed (the family's fill 15-35 %): the cardia and the pre-pyloric canal may lie under it and the gas "
+                "split into pockets; *as drawn*: the `stomachs` part's rows on the same volumes. *said*: runs whose "
+                "warnings say a point was joined to its gas through the water. *lower*: volumes whose visible mucosa "
+                f"falls by over {100 * VISIBLE_DROP:g} point; *fewer markers*: volumes that see fewer markers than as "
+                "drawn.\n"]
     elif group == CONTENTS_GROUP:
         clo, chi = CONTENTS_HU
         head = [f"## Contents: the held-out random stomachs with a pool, its fluid drawn at {clo:g}-{chi:g} HU\n",
-                "Each volume whose stomach holds fluid drawn again with the fluid at a HU drawn per seed (food, mucus or "
-                "blood: it reads like the wall, so no method can find the wall under it); *as drawn*: the `stomachs` "
-                "part's rows on the same volumes (water). *said*: runs whose warnings say such contents and ask for a "
-                f"label. *lower*: volumes whose visible mucosa falls by over {100 * VISIBLE_DROP:g} point; *fewer "
-                "markers*: volumes that see fewer markers than with water.\n"]
+                "Each volume whose stomach holds fluid drawn again with the fluid at a HU drawn per seed (food, mucus "
+                "or blood: it reads like the wall, so no method can find the wall under it); *as drawn*: the "
+                "`stomachs` part's rows on the same volumes (water). *said*: runs whose warnings say such contents and "
+                f"ask for a label. *lower*: volumes whose visible mucosa falls by over {100 * VISIBLE_DROP:g} point; "
+                "*fewer markers*: volumes that see fewer markers than with water.\n"]
     elif group == CONTRAST_GROUP:
         clo, chi = CONTRAST_HU
         head = [f"## Contrast: the held-out random stomachs with a pool, its fluid drawn at {clo:g}-{chi:g} HU\n",

@@ -646,6 +646,13 @@ def _soft_contents(prof: np.ndarray, inside: np.ndarray, n_partial: int, w: floa
     return float(np.median(med[soft]))
 
 
+def _lightly_smoothed(hu: np.ndarray, spacing) -> np.ndarray:
+    """A box of HU (k, j, i; ``spacing`` i, j, k mm) smoothed as the water's rays read it: Gaussian, one voxel or 1.5 mm
+    if less, float32."""
+    return ndimage.gaussian_filter(np.asarray(hu, np.float32), np.minimum(1.0, 1.5 / np.asarray(spacing, float)[::-1]),
+                                   mode="nearest")
+
+
 def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: float, min_level_mm2: float,
                    max_depth_mm: float):
     """The water under the air's flat level, its rays run down the grid axis closest to LPS +y (see
@@ -683,7 +690,7 @@ def _fluid_on_grid(ct: Volume, air: np.ndarray, max_hu: float, threshold_hu: flo
     t = np.clip((threshold_hu - h0) / np.maximum(h1 - h0, 1e-3), 0.0, 1.0)
     yl = ((lev[:, ::-1] * ct.spacing) @ ct.direction[1, :] + ct.origin[1]) + t * w
     level_y = float(np.median(yl))
-    sm = ndimage.gaussian_filter(hu.astype(np.float32), np.minimum(1.0, 1.5 / ct.spacing[::-1]), mode="nearest")
+    sm = _lightly_smoothed(hu, ct.spacing)
     fwd = np.moveaxis(sm, ax, -1)
     if st < 0:
         fwd = fwd[..., ::-1]
@@ -1140,9 +1147,8 @@ BUBBLE_ML = 1.0
 
 
 def _smoothed_box(ct: Volume, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """The CT's HU in the index box [lo, hi) (i, j, k), lightly smoothed (Gaussian, one voxel or 1.5 mm if less)."""
-    box = np.asarray(ct.array[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]], np.float32)
-    return ndimage.gaussian_filter(box, np.minimum(1.0, 1.5 / np.asarray(ct.spacing, float)[::-1]), mode="nearest")
+    """The CT's HU in the index box [lo, hi) (i, j, k), lightly smoothed (:func:`_lightly_smoothed`)."""
+    return _lightly_smoothed(ct.array[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]], ct.spacing)
 
 
 def _gas_above_water(ct: Volume, air, p: np.ndarray, max_hu: float) -> tuple | None:
@@ -1151,7 +1157,8 @@ def _gas_above_water(ct: Volume, air, p: np.ndarray, max_hu: float) -> tuple | N
     The rays run against each side's gravity (DEPENDENT_SIDES, in turn) in steps of half the smallest spacing, through
     the CT lightly smoothed (:func:`_smoothed_box`) round each ray. A ray is taken when it reaches water
     ([FLUID_MIN_HU, ``max_hu``] HU) within SUBMERGED_LEAD_MM, no run of its samples above the range is longer than
-    SUBMERGED_GAP_MM (a wall) until it leaves the water below the range within SUBMERGED_MAX_MM, and an ``air`` voxel (bool mask on ct's grid) lies within SUBMERGED_EXIT_MM of that exit (fat or bowel has none)."""
+    SUBMERGED_GAP_MM (a wall) until it leaves the water below the range within SUBMERGED_MAX_MM, and an ``air`` voxel
+    (bool mask on ct's grid) lies within SUBMERGED_EXIT_MM of that exit (fat or bowel has none)."""
     p = np.asarray(p, float).reshape(3)
     step = 0.5 * float(np.min(ct.spacing))
     t = np.arange(0.0, SUBMERGED_MAX_MM + step, step)
@@ -1185,14 +1192,14 @@ def _gas_above_water(ct: Volume, air, p: np.ndarray, max_hu: float) -> tuple | N
     return None
 
 
-def _seeds(ct: Volume, air, pts: dict, threshold_hu: float, max_snap_mm: float, max_hu: float):
+def _seeds(ct: Volume, air, pts: dict, threshold_hu: float, max_snap_mm: float, max_hu: float, voxel_ml: float):
     """Each point's air seed (LPS mm), its pocket (bool on ct's grid, flooded once per pocket) and the points joined to
     their gas through water: (seeds, pockets, {name: (depth mm, None or the bubble passed over: (mL, mm away))}).
 
     A point's seed is its nearest air voxel within ``max_snap_mm``; with none, or with one in a pocket under BUBBLE_ML,
     the gas a ray from it up through water alone meets (:func:`_gas_above_water`, water up to ``max_hu`` HU) when there
-    is such a ray (to other gas than the bubble). Raises AnatomyError naming the point when it has no seed."""
-    voxel_ml = float(np.prod(ct.spacing)) / 1000.0
+    is such a ray (to other gas than the bubble). ``voxel_ml``: a voxel's volume (mL). Raises AnatomyError naming the
+    point when it has no seed."""
     seeds, pockets, joined = {}, {}, {}
     for name, p in pts.items():
         s = nearest_true(air, ct, p, max_snap_mm)
@@ -1267,7 +1274,7 @@ def air_region(ct: Volume, cardia_lps, pylorus_lps, threshold_hu: float = -500.0
     if progress is not None:
         progress(0.1)
     voxel_ml = float(np.prod(ct.spacing)) / 1000.0
-    seeds, pockets, joined = _seeds(ct, air, pts, threshold_hu, max_snap_mm, fluid_max_hu)
+    seeds, pockets, joined = _seeds(ct, air, pts, threshold_hu, max_snap_mm, fluid_max_hu, voxel_ml)
     sides = _side_axes(ct)
     region = None
     n_comp = 0
