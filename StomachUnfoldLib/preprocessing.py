@@ -970,6 +970,8 @@ WATER_BESIDE_BELOW_MM = 3.0
 WATER_BESIDE_CORE_MM = 1.5
 WATER_BESIDE_MAX_GRADIENT = 8.0
 WATER_BESIDE_SAY_ML = 10.0
+#: Rule 53 (under test): the added water's face smoothed with a Gaussian of this sigma (mm; 0: not smoothed)
+WATER_BESIDE_SMOOTH_MM = 0.0
 
 
 def _ball(radius_vox: np.ndarray) -> np.ndarray:
@@ -1020,7 +1022,13 @@ def water_beside(ct: Volume, lumen: np.ndarray, fluid: np.ndarray, gravity_lps, 
     grown = ndimage.binary_dilation(np.isin(labels, touching[touching > 0]), ball) & water
     # the voxels a noisy HU left out inside it, enclosed by the lumen: islands of "wall" floating in the water
     lumen_box = np.asarray(lumen[box], bool)
-    return grown | (ndimage.binary_fill_holes(grown | lumen_box) & ~lumen_box & below), box
+    grown |= ndimage.binary_fill_holes(grown | lumen_box) & ~lumen_box & below
+    if WATER_BESIDE_SMOOTH_MM > 0 and grown.any():
+        # its face against the wall smoothed: the water range read voxel by voxel under noise leaves it ragged by a
+        # voxel, pits on the view
+        u = ndimage.gaussian_filter((grown | lumen_box).astype(np.float32), WATER_BESIDE_SMOOTH_MM / sp[::-1])
+        grown = (u > 0.5) & ndimage.binary_dilation(grown, ball) & below & ~lumen_box
+    return grown, box
 
 
 def _with_water_beside(fluid: np.ndarray, info: dict, ct: Volume, air: np.ndarray, gravity, level_mm: float,
