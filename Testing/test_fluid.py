@@ -599,3 +599,28 @@ def test_water_beside_stays_below_the_level_and_connected_to_the_water_found():
     assert np.count_nonzero(full & ndimage.binary_dilation(fluid_true)) >= 0.95 * np.count_nonzero(full)
     labels, n = ndimage.label(full | fluid)
     assert n == 1
+
+
+def test_the_added_waters_face_is_smoothed_when_asked(monkeypatch):
+    """Rule 53's smoothing (WATER_BESIDE_SMOOTH_MM) on tiny 34001 drawn deep: the face of the water added beside the
+    rays, ragged by a voxel where the water range is read voxel by voxel under noise, has under half the single-voxel
+    spikes and pits next to it, and leaves out no more water and takes in no more wall."""
+    from StomachUnfoldEval.lumen_truth import lumen_against_drawn
+    from StomachUnfoldEval.random_stomach import random_stomach
+
+    ct, truth = random_stomach(34001, "tiny", fluid=True, fluid_depth_fraction=0.5)
+    pts = (truth["cardia_lps"], truth["pylorus_lps"])
+    rays, _ = air_region(ct, *pts)
+    monkeypatch.setattr(preprocessing, "WATER_BESIDE", "add")
+    six = ndimage.generate_binary_structure(3, 1).astype(int)
+    six[1, 1, 1] = 0
+    found = {}
+    for sigma in (0.0, 1.5):
+        monkeypatch.setattr(preprocessing, "WATER_BESIDE_SMOOTH_MM", sigma)
+        lumen, _ = air_region(ct, *pts)
+        n = ndimage.convolve(lumen.astype(int), six, mode="constant")
+        near = ndimage.binary_dilation(lumen & ~rays, iterations=2)
+        rough = int(np.count_nonzero(lumen & (n <= 2) & near) + np.count_nonzero(~lumen & (n >= 4) & near))
+        found[sigma] = (rough, lumen_against_drawn(ct, truth, lumen, "all"))
+    assert found[0.0][0] > 50 and found[1.5][0] < 0.5 * found[0.0][0]
+    assert found[1.5][1]["missed"] <= found[0.0][1]["missed"] and found[1.5][1]["over"] <= found[0.0][1]["over"]
