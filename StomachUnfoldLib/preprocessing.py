@@ -954,9 +954,9 @@ def _take_fluid(info: dict, found: tuple, side: str, gravity, Q, air: np.ndarray
     return fluid
 
 
-#: Water beside the water the rays found (:func:`water_beside`): ``"add"`` joins it to the lumen, ``"say"`` (default,
-#: until decided under protocol P2 with the bench's rows rerun) measures it and says it when it is over
-#: WATER_BESIDE_SAY_ML, ``"off"`` does neither. Under an overhang of the wall (a pool wider below its level than at it:
+#: Water beside the water the rays found (:func:`water_beside`): ``"add"`` joins it to the lumen, ``"say"`` (default:
+#: adding it failed protocol P2 twice, docs/RULE52_water_beside.md and RULE53_water_beside_smoothed.md) measures it and
+#: says it when it is over WATER_BESIDE_SAY_ML, ``"off"`` does neither. Under an overhang of the wall (a pool wider below its level than at it:
 #: a round fundus under a deep pool) or past a noisy voxel that stopped the rays, the rays run down from the level
 #: leave water out, and the view draws the wall at its face (tuning draws small 0-29 with a pool filling 40-55 % of the
 #: height: 13-33 mL left out on 7 of 29).
@@ -970,7 +970,7 @@ WATER_BESIDE_BELOW_MM = 3.0
 WATER_BESIDE_CORE_MM = 1.5
 WATER_BESIDE_MAX_GRADIENT = 8.0
 WATER_BESIDE_SAY_ML = 10.0
-#: Rule 53 (under test): the added water's face smoothed with a Gaussian of this sigma (mm; 0: not smoothed)
+#: The added water's face smoothed with a Gaussian of this sigma (mm; 0: not smoothed; rule 53's 1.5 failed P2)
 WATER_BESIDE_SMOOTH_MM = 0.0
 
 
