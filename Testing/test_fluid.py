@@ -624,3 +624,25 @@ def test_the_added_waters_face_is_smoothed_when_asked(monkeypatch):
         found[sigma] = (rough, lumen_against_drawn(ct, truth, lumen, "all"))
     assert found[0.0][0] > 50 and found[1.5][0] < 0.5 * found[0.0][0]
     assert found[1.5][1]["missed"] <= found[0.0][1]["missed"] and found[1.5][1]["over"] <= found[0.0][1]["over"]
+
+
+@pytest.mark.parametrize("half_width_mm, guarded", [(60.0, False), (40.0, True)])
+def test_water_beside_that_reaches_the_side_of_the_volume_is_neither_said_nor_added(half_width_mm, guarded,
+                                                                                   monkeypatch):
+    """The overhang ellipsoid cropped to +-40 mm in LPS x: the water under the overhang (x up to 42 mm) reaches the
+    volume's side while the rays' water (under the level's footprint, |x| < 39 mm) does not; water that runs out of
+    the volume may be a leak, so nothing is measured, said or added. Cropped to +-60 mm it is measured and added."""
+    ct, _, _ = make_ct("identity", level_y=-8.0)
+    lo = np.floor(ct.lps_to_index(np.array([[-half_width_mm, -40.0, -34.0]]))[0]).astype(int)
+    hi = np.ceil(ct.lps_to_index(np.array([[half_width_mm, 40.0, 34.0]]))[0]).astype(int) + 1
+    ct = ct.crop(lo, hi)
+    pts = (np.array([-30.0, -14.0, 0.0]), np.array([30.0, -14.0, 0.0]))
+    said, info = air_region(ct, *pts)
+    monkeypatch.setattr(preprocessing, "WATER_BESIDE", "add")
+    added, info_add = air_region(ct, *pts)
+    if guarded:
+        assert "fluid_beside_ml" not in info and np.array_equal(added, said)
+        assert info_add["fluid_ml"] == info["fluid_ml"]
+    else:
+        assert info["fluid_beside_ml"] > 1.0 and np.count_nonzero(added & ~said) > 0
+        assert info_add["fluid_ml"] == pytest.approx(info["fluid_ml"] + info["fluid_beside_ml"])
