@@ -992,7 +992,8 @@ def water_beside(ct: Volume, lumen: np.ndarray, fluid: np.ndarray, gravity_lps, 
     such voxels or ``fluid`` round it, HU gradient under WATER_BESIDE_MAX_GRADIENT HU/mm: a partial-volume band between
     the wall and fat is thinner and steeper) connected to ``fluid``, grown back by the ball within the range, with the
     voxels it and ``lumen`` enclose below the level (a noisy voxel over the range: an island of "wall" in the water,
-    whose faces the judge and the view would take for mucosa). Returns
+    whose faces the judge and the view would take for mucosa); with WATER_BESIDE_SMOOTH_MM > 0, its face then smoothed
+    (the lumen's indicator blurred by a Gaussian of that sigma, mm, and cut at a half, near it only). Returns
     ``(mask, box)``: the mask on ``box`` (a tuple of three slices of ct's ``[k, j, i]`` grid).
     """
     sp = np.asarray(ct.spacing, float)
@@ -1009,7 +1010,7 @@ def water_beside(ct: Volume, lumen: np.ndarray, fluid: np.ndarray, gravity_lps, 
         return np.zeros((0, 0, 0), bool), (slice(0, 0),) * 3
     sub = tuple(slice(int(x[0]), int(x[-1]) + 1) for x in nz)
     box = tuple(slice(lo[2 - a] + sub[a].start, lo[2 - a] + sub[a].stop) for a in range(3))
-    below = np.broadcast_to(below, below.shape)[sub]
+    below = below[sub]
     sm = _lightly_smoothed(ct.array[box], sp)
     found = np.asarray(fluid[box], bool) & below
     water = (sm >= FLUID_MIN_HU) & (sm <= max_hu) & below & ~np.asarray(lumen[box], bool)
