@@ -1029,6 +1029,7 @@ def water_beside(ct: Volume, lumen: np.ndarray, fluid: np.ndarray, gravity_lps, 
         # voxel, pits on the view
         u = ndimage.gaussian_filter((grown | lumen_box).astype(np.float32), WATER_BESIDE_SMOOTH_MM / sp[::-1])
         grown = (u > 0.5) & ndimage.binary_dilation(grown, ball) & below & ~lumen_box
+        grown |= ndimage.binary_fill_holes(grown | lumen_box) & ~lumen_box & below   # none the smoothing opened
     return grown, box
 
 
