@@ -956,10 +956,10 @@ def _take_fluid(info: dict, found: tuple, side: str, gravity, Q, air: np.ndarray
 
 #: Water beside the water the rays found (:func:`water_beside`): ``"add"`` joins it to the lumen, ``"say"`` (default:
 #: adding it failed protocol P2 twice, docs/RULE52_water_beside.md and RULE53_water_beside_smoothed.md) measures it and
-#: says it when it is over WATER_BESIDE_SAY_ML, ``"off"`` does neither. Under an overhang of the wall (a pool wider below its level than at it:
-#: a round fundus under a deep pool) or past a noisy voxel that stopped the rays, the rays run down from the level
-#: leave water out, and the view draws the wall at its face (tuning draws small 0-29 with a pool filling 40-55 % of the
-#: height: 13-33 mL left out on 7 of 29).
+#: says it when it is over WATER_BESIDE_SAY_ML, ``"off"`` does neither. Under an overhang of the wall (a pool wider
+#: below its level than at it: a round fundus under a deep pool) or past a noisy voxel that stopped the rays, the rays
+#: run down from the level leave water out, and the view draws the wall at its face (tuning draws small 0-29 with a
+#: pool filling 40-55 % of the height: 13-33 mL left out on 7 of 29).
 WATER_BESIDE = "say"
 #: How far (mm) beside the found water it is looked for; how far (mm) below the level it starts (the level's own
 #: partial-volume voxels are the rays'); the radius (mm) of the ball of water-range voxels its core must hold (a
@@ -987,14 +987,16 @@ def water_beside(ct: Volume, lumen: np.ndarray, fluid: np.ndarray, gravity_lps, 
     """Water beside the retained fluid under a level that its rays did not reach (bool mask in a box, and the box).
 
     Voxels more than WATER_BESIDE_BELOW_MM below the level (``level_mm``, the level's coordinate along the unit LPS
-    ``gravity_lps``, mm) and within WATER_BESIDE_REACH_MM of ``fluid``'s box whose lightly smoothed HU is in the water
-    range [``FLUID_MIN_HU``, ``max_hu``] and not in ``lumen``; of those, the core (a ball of WATER_BESIDE_CORE_MM of
-    such voxels or ``fluid`` round it, HU gradient under WATER_BESIDE_MAX_GRADIENT HU/mm: a partial-volume band between
-    the wall and fat is thinner and steeper) connected to ``fluid``, grown back by the ball within the range, with the
-    voxels it and ``lumen`` enclose below the level (a noisy voxel over the range: an island of "wall" in the water,
-    whose faces the judge and the view would take for mucosa); with WATER_BESIDE_SMOOTH_MM > 0, its face then smoothed
-    (the lumen's indicator blurred by a Gaussian of that sigma, mm, and cut at a half, near it only). Returns
-    ``(mask, box)``: the mask on ``box`` (a tuple of three slices of ct's ``[k, j, i]`` grid).
+    ``gravity_lps``, mm) and within WATER_BESIDE_REACH_MM of ``fluid``'s box whose lightly smoothed HU is in the
+    water range [``FLUID_MIN_HU``, ``max_hu``] and not in ``lumen`` (bool on ct's grid; ``fluid``'s voxels count as
+    lumen too, so the air alone may be passed: no whole-grid union is made); of those, the core (a ball of
+    WATER_BESIDE_CORE_MM of such voxels or ``fluid`` round it, HU gradient under WATER_BESIDE_MAX_GRADIENT HU/mm: a
+    partial-volume band between the wall and fat is thinner and steeper) connected to ``fluid``, grown back by the
+    ball within the range, with the voxels it and ``lumen`` enclose below the level (a noisy voxel over the range:
+    an island of "wall" in the water, whose faces the judge and the view would take for mucosa); with
+    WATER_BESIDE_SMOOTH_MM > 0, its face then smoothed (the lumen's indicator blurred by a Gaussian of that sigma,
+    mm, and cut at a half, near it only). Returns ``(mask, box)``: the mask on ``box`` (a tuple of three slices of
+    ct's ``[k, j, i]`` grid).
     """
     sp = np.asarray(ct.spacing, float)
     lo, hi = bounding_box(fluid, np.ceil(WATER_BESIDE_REACH_MM / sp).astype(int))
@@ -1012,8 +1014,10 @@ def water_beside(ct: Volume, lumen: np.ndarray, fluid: np.ndarray, gravity_lps, 
     box = tuple(slice(lo[2 - a] + sub[a].start, lo[2 - a] + sub[a].stop) for a in range(3))
     below = below[sub]
     sm = _lightly_smoothed(ct.array[box], sp)
-    found = np.asarray(fluid[box], bool) & below
-    water = (sm >= FLUID_MIN_HU) & (sm <= max_hu) & below & ~np.asarray(lumen[box], bool)
+    fluid_box = np.asarray(fluid[box], bool)
+    lumen_box = np.asarray(lumen[box], bool) | fluid_box
+    found = fluid_box & below
+    water = (sm >= FLUID_MIN_HU) & (sm <= max_hu) & below & ~lumen_box
     flat = water & (np.sqrt(sum(g * g for g in np.gradient(sm, *sp[::-1]))) < WATER_BESIDE_MAX_GRADIENT)
     del sm
     ball = _ball(WATER_BESIDE_CORE_MM / sp[::-1])
@@ -1022,7 +1026,6 @@ def water_beside(ct: Volume, lumen: np.ndarray, fluid: np.ndarray, gravity_lps, 
     touching = np.unique(labels[ndimage.binary_dilation(found) & core])
     grown = ndimage.binary_dilation(np.isin(labels, touching[touching > 0]), ball) & water
     # the voxels a noisy HU left out inside it, enclosed by the lumen: islands of "wall" floating in the water
-    lumen_box = np.asarray(lumen[box], bool)
     grown |= ndimage.binary_fill_holes(grown | lumen_box) & ~lumen_box & below
     if WATER_BESIDE_SMOOTH_MM > 0 and grown.any():
         # its face against the wall smoothed: the water range read voxel by voxel under noise leaves it ragged by a
@@ -1040,7 +1043,7 @@ def _with_water_beside(fluid: np.ndarray, info: dict, ct: Volume, air: np.ndarra
     the fluid itself, or to the side of the volume) or with nothing beside."""
     if WATER_BESIDE == "off" or not fluid.any():
         return fluid
-    beside, box = water_beside(ct, air | fluid, fluid, gravity, level_mm, max_hu)
+    beside, box = water_beside(ct, air, fluid, gravity, level_mm, max_hu)
     n = int(np.count_nonzero(beside))
     if n == 0:
         info["fluid_beside_ml"] = 0.0
